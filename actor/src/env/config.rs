@@ -1,0 +1,143 @@
+//! Settings of one crawler environment. Every field has the study's value as its default.
+
+use serde::{Deserialize, Serialize};
+
+/// Which way along x the crawler is rewarded for moving.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, Default)]
+#[serde(rename_all = "lowercase")]
+pub enum Direction {
+    #[default]
+    Forward,
+    Backward,
+}
+
+impl Direction {
+    /// +1 for forward, −1 for backward: the factor applied to x displacements.
+    pub fn sign(self) -> f32 {
+        match self {
+            Direction::Forward => 1.0,
+            Direction::Backward => -1.0,
+        }
+    }
+}
+
+/// Settings of the crawler environment. The defaults reproduce the study.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct EnvConfig {
+    /// Torque levels per joint, n; the action space has n² actions.
+    pub action_levels: u32,
+    /// Physics steps each decision is held for. 1 is the study (a decision every 2 ms).
+    pub action_repeat: u32,
+    /// Rewarded direction of travel.
+    pub direction: Direction,
+    /// Motor torque limit τmax in N·m; levels are spread evenly over [−τmax, τmax].
+    pub max_torque: f32,
+    /// Physics time step in seconds.
+    pub dt: f32,
+    /// Physics steps before the progress check may end an episode (2 s in the study).
+    pub min_episode_steps: u32,
+    /// Physics steps after which an episode is truncated (200 s in the study).
+    pub max_episode_steps: u32,
+    /// After the minimum duration, an episode terminates once the distance covered per
+    /// physics step, averaged over the episode, falls below this (metres; 0.1 mm in the study).
+    pub min_progress_per_step: f32,
+    /// false: frictions combine by maximum, as MuJoCo does, so the base has the floor's 0.5.
+    /// true: every body keeps its own friction, so the base truly slides (μ = 1e-4).
+    pub sliding_base: bool,
+    /// rapier's solver iterations per step.
+    pub solver_iterations: u32,
+    /// Range in degrees from which joint 1's start angle is drawn uniformly.
+    pub start_joint1_deg: [f32; 2],
+    /// Range in degrees from which joint 2's start angle is drawn uniformly; the draw is
+    /// clamped into joint 2's limits (0°…150°).
+    pub start_joint2_deg: [f32; 2],
+}
+
+impl Default for EnvConfig {
+    fn default() -> Self {
+        Self {
+            action_levels: 5,
+            action_repeat: 1,
+            direction: Direction::Forward,
+            max_torque: 1.0,
+            dt: 0.002,
+            min_episode_steps: 1_000,
+            max_episode_steps: 100_000,
+            min_progress_per_step: 1e-4,
+            sliding_base: false,
+            solver_iterations: 4,
+            start_joint1_deg: [-45.0, 0.0],
+            start_joint2_deg: [-22.5, 22.5],
+        }
+    }
+}
+
+/// A setting outside its allowed range. The message names the key and the range.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+#[error("env.{key} = {value} is invalid: {allowed}")]
+pub struct EnvConfigError {
+    pub key: &'static str,
+    pub value: String,
+    pub allowed: &'static str,
+}
+
+impl EnvConfig {
+    /// Number of discrete actions, n².
+    pub fn num_actions(&self) -> usize {
+        (self.action_levels as usize).pow(2)
+    }
+
+    /// Checks every field against its allowed range.
+    pub fn validate(&self) -> Result<(), EnvConfigError> {
+        fn check(
+            ok: bool,
+            key: &'static str,
+            value: impl ToString,
+            allowed: &'static str,
+        ) -> Result<(), EnvConfigError> {
+            if ok { Ok(()) } else { Err(EnvConfigError { key, value: value.to_string(), allowed }) }
+        }
+        let levels = self.action_levels;
+        check((2..=15).contains(&levels), "action_levels", levels, "an integer in 2..=15")?;
+        let repeat = self.action_repeat;
+        check((1..=500).contains(&repeat), "action_repeat", repeat, "an integer in 1..=500")?;
+        let torque = self.max_torque;
+        check(torque.is_finite() && torque > 0.0 && torque <= 100.0, "max_torque", torque, "a number in (0, 100] N·m")?;
+        let dt = self.dt;
+        check(dt.is_finite() && (1e-4..=0.02).contains(&dt), "dt", dt, "a number of seconds in [0.0001, 0.02]")?;
+        check(self.min_episode_steps >= 1, "min_episode_steps", self.min_episode_steps, "at least 1")?;
+        check(
+            self.max_episode_steps >= self.min_episode_steps,
+            "max_episode_steps",
+            self.max_episode_steps,
+            "at least min_episode_steps",
+        )?;
+        let progress = self.min_progress_per_step;
+        check(progress.is_finite() && progress >= 0.0, "min_progress_per_step", progress, "a finite number ≥ 0")?;
+        let iters = self.solver_iterations;
+        check((1..=100).contains(&iters), "solver_iterations", iters, "an integer in 1..=100")?;
+        for (key, range) in [("start_joint1_deg", self.start_joint1_deg), ("start_joint2_deg", self.start_joint2_deg)] {
+            check(
+                range.iter().all(|v| v.is_finite()) && range[0] <= range[1],
+                key,
+                format!("{range:?}"),
+                "[low, high] with low ≤ high, in degrees",
+            )?;
+        }
+        Ok(())
+    }
+
+    /// The torque of level `level` of `action_levels`, evenly spaced in [−τmax, τmax].
+    pub fn torque_of_level(&self, level: u32) -> f32 {
+        let span = (self.action_levels - 1).max(1) as f32;
+        -self.max_torque + 2.0 * self.max_torque * level as f32 / span
+    }
+
+    /// Joint torques (τ1, τ2) of action `action`: joint 1 takes level `action / n`,
+    /// joint 2 level `action % n`.
+    pub fn action_torques(&self, action: u32) -> [f32; 2] {
+        let n = self.action_levels;
+        [self.torque_of_level(action / n), self.torque_of_level(action % n)]
+    }
+}

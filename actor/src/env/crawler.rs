@@ -1,0 +1,595 @@
+//! One crawler in its own rapier3d world.
+//!
+//! Each crawler owns a separate physics world, so its trajectory depends on its seed and its
+//! actions only, never on how many crawlers run beside it. The world is rebuilt at every reset,
+//! so no solver warm-start state leaks from one episode into the next.
+
+use rand::{Rng, SeedableRng};
+use rand_chacha::ChaCha8Rng;
+use rapier3d::math::{Pose, Rotation, Vector};
+use rapier3d::prelude::*;
+
+use super::config::EnvConfig;
+use super::model::*;
+use super::observation::{self as obs, OBS_DIM};
+
+/// The reward of one decision step, by component. Both are sums over the physics steps the
+/// decision was held for, so their scale per second does not depend on the action repeat.
+#[derive(Debug, Clone, Copy, Default, PartialEq)]
+pub struct Reward {
+    /// `0.5·(1 − e^(−100·dx))` for dx > 0, else `0.5·(−1 + e^(−100·|dx|))`, with dx the
+    /// base's x displacement in the rewarded direction.
+    pub position: f32,
+    /// `0.5·(1 − |pitch|/π)`, pitch being the base's rotation about y (xyz Euler angles).
+    pub upright: f32,
+}
+
+impl Reward {
+    pub fn total(&self) -> f32 {
+        self.position + self.upright
+    }
+}
+
+/// What one decision step produced.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct StepOutcome {
+    pub reward: Reward,
+    /// The episode ended on its own terms (too little progress): do not bootstrap.
+    pub terminated: bool,
+    /// The episode hit its time limit: the state is not terminal, bootstrap from it.
+    pub truncated: bool,
+}
+
+impl StepOutcome {
+    pub fn done(&self) -> bool {
+        self.terminated || self.truncated
+    }
+}
+
+/// Statistics of a finished episode.
+#[derive(Debug, Clone, Copy, PartialEq, Default)]
+pub struct EpisodeSummary {
+    /// Distance covered by the base in the rewarded direction, in metres.
+    pub distance: f32,
+    /// Simulated duration in seconds.
+    pub duration: f32,
+    /// Mean speed in the rewarded direction, in m/s.
+    pub speed: f32,
+    pub reward: Reward,
+    /// Times the base turned over (its top started facing downwards).
+    pub flips: u32,
+    pub terminated: bool,
+    pub truncated: bool,
+    /// Physics steps taken.
+    pub physics_steps: u32,
+}
+
+/// World poses of the bodies at one physics step, for plots and animations.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct PoseFrame {
+    /// Simulated time since the episode's start, in seconds.
+    pub time: f32,
+    /// Translation (x, y, z) and quaternion (w, x, y, z) of base, link 1 and link 2.
+    pub base: [f32; 7],
+    pub link1: [f32; 7],
+    pub link2: [f32; 7],
+    /// Centre of the tip cube.
+    pub tip: [f32; 3],
+    /// Joint angles in radians.
+    pub joint_angles: [f32; 2],
+}
+
+#[derive(Debug, Clone, Copy)]
+struct Handles {
+    base: RigidBodyHandle,
+    link1: RigidBodyHandle,
+    link2: RigidBodyHandle,
+    base_collider: ColliderHandle,
+    link1_collider: ColliderHandle,
+    tip_collider: ColliderHandle,
+}
+
+/// Running totals of the current episode.
+#[derive(Debug, Clone, Copy, Default)]
+struct EpisodeState {
+    physics_steps: u32,
+    start_x: f32,
+    reward: Reward,
+    flips: u32,
+    flipped: bool,
+}
+
+/// A single crawler: physics, observation, reward and episode logic.
+pub struct Crawler {
+    config: EnvConfig,
+    rng: ChaCha8Rng,
+    world: PhysicsWorld,
+    handles: Handles,
+    episode: EpisodeState,
+    applied_torques: [f32; 2],
+    touches: [f32; 17],
+    recording: Option<Vec<PoseFrame>>,
+}
+
+impl std::fmt::Debug for Crawler {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("Crawler")
+            .field("config", &self.config)
+            .field("physics_steps", &self.episode.physics_steps)
+            .field("base_x", &self.base_x())
+            .finish_non_exhaustive()
+    }
+}
+
+impl Crawler {
+    /// A crawler reset to a start pose drawn with `seed`. The config must be valid
+    /// (see [`EnvConfig::validate`]).
+    pub fn new(config: EnvConfig, seed: u64) -> Self {
+        let mut rng = ChaCha8Rng::seed_from_u64(seed);
+        let [q1, q2] = draw_start_pose(&config, &mut rng);
+        let (world, handles) = build_world(&config, q1, q2);
+        let mut crawler = Self {
+            config,
+            rng,
+            world,
+            handles,
+            episode: EpisodeState::default(),
+            applied_torques: [0.0; 2],
+            touches: [0.0; 17],
+            recording: None,
+        };
+        crawler.start_episode();
+        crawler
+    }
+
+    pub fn config(&self) -> &EnvConfig {
+        &self.config
+    }
+
+    /// Starts a new episode from a fresh start pose: all bodies at rest.
+    pub fn reset(&mut self) {
+        let pose = draw_start_pose(&self.config, &mut self.rng);
+        self.reset_to(pose);
+    }
+
+    /// Starts a new episode from the given joint angles (radians), clamped into the limits.
+    pub fn reset_to(&mut self, joint_angles: [f32; 2]) {
+        let q1 = joint_angles[0].clamp(JOINT1_RANGE[0], JOINT1_RANGE[1]);
+        let q2 = joint_angles[1].clamp(JOINT2_RANGE[0], JOINT2_RANGE[1]);
+        (self.world, self.handles) = build_world(&self.config, q1, q2);
+        self.start_episode();
+    }
+
+    fn start_episode(&mut self) {
+        self.applied_torques = [0.0; 2];
+        self.touches = [0.0; 17];
+        self.episode = EpisodeState { start_x: self.base_x(), ..EpisodeState::default() };
+        let first_frame = self.pose_frame();
+        if let Some(frames) = &mut self.recording {
+            frames.clear();
+            frames.push(first_frame);
+        }
+    }
+
+    /// Applies `action` for `action_repeat` physics steps. After a terminated or truncated
+    /// step, call [`Self::reset`] before stepping again.
+    pub fn step(&mut self, action: u32) -> StepOutcome {
+        let torques = self.config.action_torques(action);
+        self.step_torques(torques)
+    }
+
+    /// Like [`Self::step`], with torques given directly (each clamped to ±τmax).
+    pub fn step_torques(&mut self, torques: [f32; 2]) -> StepOutcome {
+        let max = self.config.max_torque;
+        let torques = torques.map(|t| if t.is_finite() { t.clamp(-max, max) } else { 0.0 });
+        let direction = self.config.direction.sign();
+        let mut reward = Reward::default();
+        let mut outcome = StepOutcome { reward, terminated: false, truncated: false };
+        for _ in 0..self.config.action_repeat {
+            let x_before = self.base_x();
+            self.physics_step(torques);
+            let dx = direction * (self.base_x() - x_before);
+            let step_reward = Reward { position: position_reward(dx), upright: upright_reward(self.base_rotation()) };
+            reward.position += step_reward.position;
+            reward.upright += step_reward.upright;
+            self.track_flip();
+
+            let steps = self.episode.physics_steps;
+            if steps >= self.config.min_episode_steps {
+                let progress_per_step = self.distance() / steps as f32;
+                if progress_per_step < self.config.min_progress_per_step {
+                    outcome.terminated = true;
+                    break;
+                }
+            }
+            if steps >= self.config.max_episode_steps {
+                outcome.truncated = true;
+                break;
+            }
+        }
+        self.applied_torques = torques;
+        self.episode.reward.position += reward.position;
+        self.episode.reward.upright += reward.upright;
+        outcome.reward = reward;
+        outcome
+    }
+
+    /// One physics step with motor torques `torques`, applied as equal and opposite torques
+    /// on each joint's parent and child about the hinge axis.
+    fn physics_step(&mut self, torques: [f32; 2]) {
+        let bodies = &mut self.world.bodies;
+        let axis1 = bodies[self.handles.base].rotation() * Vector::Y;
+        let axis2 = bodies[self.handles.link1].rotation() * Vector::Y;
+        let base_torque = -torques[0] * axis1;
+        let link1_torque = torques[0] * axis1 - torques[1] * axis2;
+        let link2_torque = torques[1] * axis2;
+        for (handle, torque) in
+            [(self.handles.base, base_torque), (self.handles.link1, link1_torque), (self.handles.link2, link2_torque)]
+        {
+            let body = &mut bodies[handle];
+            body.reset_torques(false);
+            body.add_torque(torque, true);
+        }
+        self.world.step();
+        self.episode.physics_steps += 1;
+        self.read_touch_sensors();
+        if let Some(frames) = &mut self.recording {
+            let frame = pose_frame(&self.world, &self.handles, self.episode.physics_steps as f32 * self.config.dt);
+            frames.push(frame);
+        }
+    }
+
+    fn track_flip(&mut self) {
+        let up = self.base_rotation() * Vector::Z;
+        let flipped = up.z < 0.0;
+        if flipped && !self.episode.flipped {
+            self.episode.flips += 1;
+        }
+        self.episode.flipped = flipped;
+    }
+
+    /// Reads the normal forces at the touch sites from the last contact solve.
+    fn read_touch_sensors(&mut self) {
+        self.touches = [0.0; 17];
+        let inv_dt = 1.0 / self.config.dt;
+        let sites: [(ColliderHandle, usize, f32); 3] = [
+            (self.handles.tip_collider, 0, TIP_HALF_EXTENT),
+            (self.handles.link1_collider, 8, 0.0),
+            (self.handles.base_collider, 9, BASE_HALF_EXTENT),
+        ];
+        for (collider, first_slot, half) in sites {
+            for pair in self.world.narrow_phase.contact_pairs_with(collider) {
+                let ours_is_first = pair.collider1 == collider;
+                for manifold in pair.solver_manifolds() {
+                    for point in &manifold.points {
+                        let local = if ours_is_first { point.local_p1 } else { point.local_p2 };
+                        let force = point.data.impulse.abs() * inv_dt;
+                        if let Some(slot) = touch_slot(collider == self.handles.link1_collider, local, half) {
+                            self.touches[first_slot + slot] += force;
+                        }
+                    }
+                }
+            }
+        }
+    }
+
+    /// Writes the current observation (see [`super::observation`]) into `out`.
+    pub fn observe(&self, out: &mut [f32; OBS_DIM]) {
+        let bodies = &self.world.bodies;
+        let base = &bodies[self.handles.base];
+        let link1 = &bodies[self.handles.link1];
+        let link2 = &bodies[self.handles.link2];
+        let rotation = *base.rotation();
+        out[obs::BASE_Z] = base.translation().z;
+        out[obs::BASE_QUAT].copy_from_slice(&[rotation.w, rotation.x, rotation.y, rotation.z]);
+        out[obs::JOINT_ANGLES].copy_from_slice(&self.joint_angles());
+        out[obs::BASE_LINVEL].copy_from_slice(&base.linvel().to_array());
+        out[obs::BASE_ANGVEL].copy_from_slice(&(rotation.inverse() * base.angvel()).to_array());
+        out[obs::JOINT_RATES].copy_from_slice(&self.joint_rates());
+        out[obs::LINK1_ANGVEL].copy_from_slice(&link1.angvel().to_array());
+        out[obs::LINK2_ANGVEL].copy_from_slice(&link2.angvel().to_array());
+        out[obs::TIP_TOUCH.start..obs::PREV_ACTION.start].copy_from_slice(&self.touches);
+        out[obs::PREV_ACTION].copy_from_slice(&self.applied_torques);
+    }
+
+    /// Joint angles (q1, q2) in radians: each child's rotation about its hinge's +y.
+    pub fn joint_angles(&self) -> [f32; 2] {
+        let bodies = &self.world.bodies;
+        let base = bodies[self.handles.base].rotation();
+        let link1 = bodies[self.handles.link1].rotation();
+        let link2 = bodies[self.handles.link2].rotation();
+        [hinge_angle(base, link1), hinge_angle(link1, link2)]
+    }
+
+    /// Joint rates (q̇1, q̇2) in rad/s.
+    pub fn joint_rates(&self) -> [f32; 2] {
+        let bodies = &self.world.bodies;
+        let base = &bodies[self.handles.base];
+        let link1 = &bodies[self.handles.link1];
+        let link2 = &bodies[self.handles.link2];
+        let axis1 = base.rotation() * Vector::Y;
+        let axis2 = link1.rotation() * Vector::Y;
+        [(link1.angvel() - base.angvel()).dot(axis1), (link2.angvel() - link1.angvel()).dot(axis2)]
+    }
+
+    /// The base's world x position.
+    pub fn base_x(&self) -> f32 {
+        self.world.bodies[self.handles.base].translation().x
+    }
+
+    fn base_rotation(&self) -> Rotation {
+        *self.world.bodies[self.handles.base].rotation()
+    }
+
+    /// Distance covered this episode in the rewarded direction.
+    pub fn distance(&self) -> f32 {
+        self.config.direction.sign() * (self.base_x() - self.episode.start_x)
+    }
+
+    /// Physics steps taken this episode.
+    pub fn episode_physics_steps(&self) -> u32 {
+        self.episode.physics_steps
+    }
+
+    /// Whether the base is currently upside down.
+    pub fn is_flipped(&self) -> bool {
+        self.episode.flipped
+    }
+
+    /// Statistics of the episode so far; `outcome` is the step that ended it, if any.
+    pub fn episode_summary(&self, outcome: Option<StepOutcome>) -> EpisodeSummary {
+        let duration = self.episode.physics_steps as f32 * self.config.dt;
+        let distance = self.distance();
+        EpisodeSummary {
+            distance,
+            duration,
+            speed: if duration > 0.0 { distance / duration } else { 0.0 },
+            reward: self.episode.reward,
+            flips: self.episode.flips,
+            terminated: outcome.is_some_and(|o| o.terminated),
+            truncated: outcome.is_some_and(|o| o.truncated),
+            physics_steps: self.episode.physics_steps,
+        }
+    }
+
+    /// Starts (or stops) recording every body's pose at each physics step.
+    pub fn set_recording(&mut self, enabled: bool) {
+        self.recording = enabled.then(|| vec![self.pose_frame()]);
+    }
+
+    /// The frames recorded since recording started or the episode began.
+    pub fn recorded_frames(&self) -> &[PoseFrame] {
+        self.recording.as_deref().unwrap_or(&[])
+    }
+
+    fn pose_frame(&self) -> PoseFrame {
+        pose_frame(&self.world, &self.handles, self.episode.physics_steps as f32 * self.config.dt)
+    }
+
+    /// Holds the base fixed at height `z` above its resting height (diagnostics: the arm
+    /// then hangs free of the floor). Undone by the next reset.
+    pub fn hold_base_in_air(&mut self, z: f32) {
+        let handles = self.handles;
+        let lift = Vector::new(0.0, 0.0, z);
+        for handle in [handles.base, handles.link1, handles.link2] {
+            let body = &mut self.world.bodies[handle];
+            let translation = body.translation() + lift;
+            body.set_translation(translation, true);
+        }
+        self.world.bodies[handles.base].set_body_type(RigidBodyType::Fixed, true);
+    }
+}
+
+/// Draws the study's start pose: joint 1 uniform in its start range, joint 2 likewise, each
+/// clamped into the joint's limits (the study's joint-2 range reaches below 0°).
+fn draw_start_pose(config: &EnvConfig, rng: &mut ChaCha8Rng) -> [f32; 2] {
+    let mut draw = |[low, high]: [f32; 2]| if high > low { rng.random_range(low..high) } else { low } * DEG;
+    let q1 = draw(config.start_joint1_deg).clamp(JOINT1_RANGE[0], JOINT1_RANGE[1]);
+    let q2 = draw(config.start_joint2_deg).clamp(JOINT2_RANGE[0], JOINT2_RANGE[1]);
+    [q1, q2]
+}
+
+fn position_reward(dx: f32) -> f32 {
+    if dx > 0.0 { 0.5 * (1.0 - (-100.0 * dx).exp()) } else { 0.5 * (-1.0 + (-100.0 * dx.abs()).exp()) }
+}
+
+fn upright_reward(rotation: Rotation) -> f32 {
+    // The y angle of xyz Euler angles: asin of −R[2][0] = asin(2(wy − xz)).
+    let sin_pitch = (2.0 * (rotation.w * rotation.y - rotation.x * rotation.z)).clamp(-1.0, 1.0);
+    0.5 * (1.0 - sin_pitch.asin().abs() / std::f32::consts::PI)
+}
+
+/// Rotation of `child` relative to `parent` about the parent's +y axis, in (−π, π].
+fn hinge_angle(parent: &Rotation, child: &Rotation) -> f32 {
+    let relative = parent.inverse() * *child;
+    let angle = 2.0 * relative.y.atan2(relative.w);
+    // q and −q are the same rotation; keep the angle in (−π, π].
+    if angle > std::f32::consts::PI {
+        angle - std::f32::consts::TAU
+    } else if angle <= -std::f32::consts::PI {
+        angle + std::f32::consts::TAU
+    } else {
+        angle
+    }
+}
+
+/// Which touch site (0-based, within its body's group) a contact point at `local` (in the
+/// collider's frame) falls in, if any.
+fn touch_slot(is_knee: bool, local: Vector, half: f32) -> Option<usize> {
+    if is_knee {
+        // The knee site sits on link 1's axis at its far end: collider-local (L/2, 0, 0).
+        let knee = Vector::new(LINK1_LENGTH / 2.0, 0.0, 0.0);
+        return (local.distance(knee) <= TOUCH_SITE_RADIUS).then_some(0);
+    }
+    let index = obs::corner_index(local.to_array());
+    let corner = Vector::from_array(obs::corner_position(index, half));
+    (local.distance(corner) <= TOUCH_SITE_RADIUS).then_some(index)
+}
+
+fn pose_frame(world: &PhysicsWorld, handles: &Handles, time: f32) -> PoseFrame {
+    let pose7 = |handle: RigidBodyHandle| {
+        let body = &world.bodies[handle];
+        let t = body.translation();
+        let r = body.rotation();
+        [t.x, t.y, t.z, r.w, r.x, r.y, r.z]
+    };
+    let link2 = &world.bodies[handles.link2];
+    let tip = link2.position() * Vector::new(LINK2_LENGTH, 0.0, 0.0);
+    let rot = |h: RigidBodyHandle| *world.bodies[h].rotation();
+    PoseFrame {
+        time,
+        base: pose7(handles.base),
+        link1: pose7(handles.link1),
+        link2: pose7(handles.link2),
+        tip: tip.to_array(),
+        joint_angles: [
+            hinge_angle(&rot(handles.base), &rot(handles.link1)),
+            hinge_angle(&rot(handles.link1), &rot(handles.link2)),
+        ],
+    }
+}
+
+/// Builds the crawler's world with the base at rest and the joints at (q1, q2). If the arm
+/// would reach into the floor, the whole crawler is lifted just clear of it.
+fn build_world(config: &EnvConfig, q1: f32, q2: f32) -> (PhysicsWorld, Handles) {
+    let mut world = PhysicsWorld::default();
+    world.gravity = Vector::new(0.0, 0.0, GRAVITY);
+    world.integration_parameters.dt = config.dt;
+    world.integration_parameters.num_solver_iterations = config.solver_iterations as usize;
+
+    // MuJoCo combines two geoms' frictions by taking the larger. With `sliding_base`, every
+    // pair takes the smaller instead and the floor gets the largest body friction, so each
+    // body slides with its own coefficient.
+    let (rule, floor_friction) = if config.sliding_base {
+        (CoefficientCombineRule::Min, LINK_FRICTION.max(TIP_FRICTION))
+    } else {
+        (CoefficientCombineRule::Max, FLOOR_FRICTION)
+    };
+
+    let link1_rotation = Rotation::from_rotation_y(q1);
+    let link2_rotation = Rotation::from_rotation_y(q1 + q2);
+    let link1_origin = Vector::new(BASE_HALF_EXTENT, 0.0, 0.0);
+    let link2_origin = link1_origin + link1_rotation * Vector::new(LINK1_LENGTH, 0.0, 0.0);
+    let lift = start_lift(link1_origin, link1_rotation, link2_origin, link2_rotation);
+    let up = Vector::new(0.0, 0.0, lift);
+
+    let floor = world.bodies.insert(RigidBodyBuilder::fixed());
+    let floor_collider = ColliderBuilder::new(SharedShape::halfspace(Vector::Z))
+        .translation(Vector::new(0.0, 0.0, FLOOR_Z))
+        .friction(floor_friction)
+        .friction_combine_rule(rule);
+    world.colliders.insert_with_parent(floor_collider, floor, &mut world.bodies);
+
+    let body = |pose: Pose| RigidBodyBuilder::dynamic().pose(pose).can_sleep(false);
+    let base = world.bodies.insert(body(Pose::from_translation(up)));
+    let link1 = world.bodies.insert(body(Pose::from_parts(link1_origin + up, link1_rotation)));
+    let link2 = world.bodies.insert(body(Pose::from_parts(link2_origin + up, link2_rotation)));
+
+    let base_collider = world.colliders.insert_with_parent(
+        ColliderBuilder::cuboid(BASE_HALF_EXTENT, BASE_HALF_EXTENT, BASE_HALF_EXTENT)
+            .mass(BASE_MASS)
+            .friction(BASE_FRICTION)
+            .friction_combine_rule(rule),
+        base,
+        &mut world.bodies,
+    );
+    let link1_collider = world.colliders.insert_with_parent(
+        ColliderBuilder::capsule_x(LINK1_LENGTH / 2.0, LINK_RADIUS)
+            .translation(Vector::new(LINK1_LENGTH / 2.0, 0.0, 0.0))
+            .mass(LINK1_MASS)
+            .friction(LINK_FRICTION)
+            .friction_combine_rule(rule),
+        link1,
+        &mut world.bodies,
+    );
+    world.colliders.insert_with_parent(
+        ColliderBuilder::capsule_x(LINK2_LENGTH / 2.0, LINK_RADIUS)
+            .translation(Vector::new(LINK2_LENGTH / 2.0, 0.0, 0.0))
+            .mass(LINK2_MASS)
+            .friction(LINK_FRICTION)
+            .friction_combine_rule(rule),
+        link2,
+        &mut world.bodies,
+    );
+    let tip_collider = world.colliders.insert_with_parent(
+        ColliderBuilder::cuboid(TIP_HALF_EXTENT, TIP_HALF_EXTENT, TIP_HALF_EXTENT)
+            .translation(Vector::new(LINK2_LENGTH, 0.0, 0.0))
+            .mass(TIP_MASS)
+            .friction(TIP_FRICTION)
+            .friction_combine_rule(rule),
+        link2,
+        &mut world.bodies,
+    );
+
+    // Jointed bodies never touch each other (MuJoCo excludes parent–child pairs); the base
+    // still collides with link 2 and the tip, which share no joint with it.
+    let shoulder = RevoluteJointBuilder::new(Vector::Y)
+        .local_anchor1(link1_origin)
+        .local_anchor2(Vector::ZERO)
+        .limits(JOINT1_RANGE)
+        .contacts_enabled(false);
+    let knee = RevoluteJointBuilder::new(Vector::Y)
+        .local_anchor1(Vector::new(LINK1_LENGTH, 0.0, 0.0))
+        .local_anchor2(Vector::ZERO)
+        .limits(JOINT2_RANGE)
+        .contacts_enabled(false);
+    world.impulse_joints.insert(base, link1, shoulder, true);
+    world.impulse_joints.insert(link1, link2, knee, true);
+
+    let handles = Handles { base, link1, link2, base_collider, link1_collider, tip_collider };
+    (world, handles)
+}
+
+/// How far to lift a crawler posed with its base at rest so that no part is below the floor.
+fn start_lift(link1_origin: Vector, link1_rotation: Rotation, link2_origin: Vector, link2_rotation: Rotation) -> f32 {
+    let mut lowest = -BASE_HALF_EXTENT;
+    let link1_end = link1_origin + link1_rotation * Vector::new(LINK1_LENGTH, 0.0, 0.0);
+    lowest = lowest.min(link1_end.z - LINK_RADIUS);
+    let link2_end = link2_origin + link2_rotation * Vector::new(LINK2_LENGTH, 0.0, 0.0);
+    lowest = lowest.min(link2_end.z - LINK_RADIUS);
+    for corner in 0..8 {
+        let local =
+            Vector::from_array(obs::corner_position(corner, TIP_HALF_EXTENT)) + Vector::new(LINK2_LENGTH, 0.0, 0.0);
+        lowest = lowest.min((link2_origin + link2_rotation * local).z);
+    }
+    (FLOOR_Z - lowest).max(0.0)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn position_reward_is_odd_and_saturates() {
+        assert_eq!(position_reward(0.0), 0.0);
+        assert!((position_reward(0.001) + position_reward(-0.001)).abs() < 1e-7);
+        assert!(position_reward(1.0) > 0.499);
+        assert!(position_reward(-1.0) < -0.499);
+    }
+
+    #[test]
+    fn upright_reward_is_half_when_level_and_falls_with_pitch() {
+        assert!((upright_reward(Rotation::IDENTITY) - 0.5).abs() < 1e-6);
+        let tilted = upright_reward(Rotation::from_rotation_y(0.5));
+        assert!((tilted - 0.5 * (1.0 - 0.5 / std::f32::consts::PI)).abs() < 1e-5, "{tilted}");
+    }
+
+    #[test]
+    fn hinge_angle_is_signed_about_y() {
+        let parent = Rotation::from_rotation_y(0.3);
+        let child = Rotation::from_rotation_y(0.3 + 0.7);
+        assert!((hinge_angle(&parent, &child) - 0.7).abs() < 1e-5);
+        assert!((hinge_angle(&child, &parent) + 0.7).abs() < 1e-5);
+    }
+
+    #[test]
+    fn start_pose_stays_inside_the_joint_limits() {
+        let config = EnvConfig::default();
+        let mut rng = ChaCha8Rng::seed_from_u64(3);
+        for _ in 0..1000 {
+            let [q1, q2] = draw_start_pose(&config, &mut rng);
+            assert!((-45.0 * DEG..=0.0).contains(&q1));
+            assert!((0.0..=22.5 * DEG).contains(&q2));
+        }
+    }
+}

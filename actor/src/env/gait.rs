@@ -1,0 +1,30 @@
+//! An open-loop square-wave gait: the physics regression check and the benchmark's workload.
+
+/// Each joint's torque flips between `high` and `low` every half period; joint 2 lags joint 1
+/// by `phase_lag` of a period.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct SquareWaveGait {
+    pub period: f32,
+    /// Torques (τ1, τ2) during the first half of joint i's cycle.
+    pub high: [f32; 2],
+    /// Torques (τ1, τ2) during the second half.
+    pub low: [f32; 2],
+    /// Fraction of a period by which joint 2's wave lags joint 1's.
+    pub phase_lag: f32,
+}
+
+impl SquareWaveGait {
+    /// A gait that crawls forward in this engine (the best of a sweep over periods, levels and
+    /// phase lags: `cargo run --release -p crawler-actor --example gait_sweep`).
+    pub const FORWARD: SquareWaveGait =
+        SquareWaveGait { period: 0.3, high: [-1.0, 1.0], low: [0.0, -1.0], phase_lag: 0.0 };
+
+    /// Torques (τ1, τ2) at time `t` seconds.
+    pub fn torques(&self, t: f32) -> [f32; 2] {
+        let first_half = |phase: f32| (t / self.period - phase).rem_euclid(1.0) < 0.5;
+        let joint = |j: usize, phase: f32| {
+            if first_half(phase) { self.high[j] } else { self.low[j] }
+        };
+        [joint(0, 0.0), joint(1, self.phase_lag)]
+    }
+}

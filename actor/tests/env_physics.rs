@@ -1,0 +1,237 @@
+//! Behaviour of the crawler environment: layout, physics sanity, determinism, rewards.
+
+use crawler_actor::env::gait::SquareWaveGait;
+use crawler_actor::env::model::{DEG, JOINT1_RANGE, JOINT2_RANGE};
+use crawler_actor::env::observation as obs;
+use crawler_actor::env::{Crawler, Direction, EnvConfig, OBS_DIM, VecEnv};
+use rand::{Rng, SeedableRng};
+use rand_chacha::ChaCha8Rng;
+
+/// A config whose episodes never end on their own, for physics checks.
+fn endless() -> EnvConfig {
+    EnvConfig { min_episode_steps: u32::MAX - 1, max_episode_steps: u32::MAX, ..EnvConfig::default() }
+}
+
+fn observe(crawler: &Crawler) -> [f32; OBS_DIM] {
+    let mut out = [0.0; OBS_DIM];
+    crawler.observe(&mut out);
+    out
+}
+
+fn run_gait(crawler: &mut Crawler, gait: &SquareWaveGait, seconds: f32) -> u32 {
+    let dt = crawler.config().dt;
+    let mut flipped_steps = 0;
+    for step in 0..(seconds / dt).round() as u32 {
+        crawler.step_torques(gait.torques(step as f32 * dt));
+        flipped_steps += u32::from(crawler.is_flipped());
+    }
+    flipped_steps
+}
+
+#[test]
+fn observation_is_forty_finite_values_in_the_documented_layout() {
+    let mut crawler = Crawler::new(endless(), 7);
+    let first = observe(&crawler);
+    assert!(first.iter().all(|v| v.is_finite()));
+    assert_eq!(&first[obs::JOINT_ANGLES], &crawler.joint_angles());
+    assert_eq!(&first[obs::PREV_ACTION], &[0.0, 0.0]);
+
+    // Let it settle with the arm lying on the floor, then read the resting state.
+    for _ in 0..500 {
+        crawler.step_torques([0.0, 0.0]);
+    }
+    let rest = observe(&crawler);
+    assert!(rest.iter().all(|v| v.is_finite()), "{rest:?}");
+    assert!(rest[obs::BASE_Z].abs() < 2e-3, "base centre rests 5 cm above the floor: {}", rest[obs::BASE_Z]);
+    let quat = &rest[obs::BASE_QUAT];
+    let norm: f32 = quat.iter().map(|q| q * q).sum();
+    assert!((norm - 1.0).abs() < 1e-4 && quat[0].abs() > 0.99, "upright unit quaternion (w first): {quat:?}");
+    for range in [obs::BASE_LINVEL, obs::BASE_ANGVEL, obs::JOINT_RATES, obs::LINK1_ANGVEL, obs::LINK2_ANGVEL] {
+        assert!(rest[range.clone()].iter().all(|v| v.abs() < 0.05), "at rest, {range:?} is ~0: {rest:?}");
+    }
+    // Resting on its bottom face: corners with z < 0 (odd MJCF numbers) carry the weight.
+    let base_touch = &rest[obs::BASE_TOUCH];
+    for (corner, force) in base_touch.iter().enumerate() {
+        let bottom = corner % 2 == 0;
+        assert_eq!(*force > 0.0, bottom, "base corner {} force {force}", corner + 1);
+    }
+    assert_eq!(rest[obs::KNEE_TOUCH], 0.0);
+    let weight = 0.9 * 9.81;
+    let measured: f32 = base_touch.iter().sum::<f32>() + rest[obs::TIP_TOUCH].iter().sum::<f32>();
+    assert!(measured > 0.2 * weight && measured < 1.2 * weight, "normal forces {measured} N vs weight {weight} N");
+
+    // The previous action is the pair of applied torques.
+    let config = crawler.config().clone();
+    crawler.step(24);
+    assert_eq!(&observe(&crawler)[obs::PREV_ACTION], &[1.0, 1.0]);
+    crawler.step(7); // joint 1 level 1, joint 2 level 2
+    assert_eq!(&observe(&crawler)[obs::PREV_ACTION], &config.action_torques(7));
+    assert_eq!(config.action_torques(7), [-0.5, 0.0]);
+}
+
+#[test]
+fn zero_torque_keeps_the_base_still() {
+    for seed in 0..4 {
+        let mut crawler = Crawler::new(endless(), seed);
+        let x0 = crawler.base_x();
+        for _ in 0..2500 {
+            crawler.step_torques([0.0, 0.0]);
+        }
+        let dx = crawler.base_x() - x0;
+        assert!(dx.abs() < 1e-3, "seed {seed}: base moved {dx} m in 5 s at zero torque");
+    }
+}
+
+#[test]
+fn random_actions_stay_finite_and_within_joint_limits() {
+    let config = EnvConfig::default();
+    let mut env = VecEnv::new(&config, &[1, 2, 3, 4]);
+    let mut rng = ChaCha8Rng::seed_from_u64(99);
+    let tolerance = 2.0 * DEG;
+    let mut actions = vec![0u32; env.len()];
+    let mut episodes = 0;
+    for _ in 0..25_000 {
+        for a in &mut actions {
+            *a = rng.random_range(0..config.num_actions() as u32);
+        }
+        episodes += env.step(&actions).len();
+        for values in [env.observations(), env.next_observations(), env.rewards()] {
+            assert!(values.iter().all(|v| v.is_finite()));
+        }
+        for o in env.next_observations().chunks_exact(OBS_DIM) {
+            let [q1, q2] = [o[obs::JOINT_ANGLES.start], o[obs::JOINT_ANGLES.start + 1]];
+            assert!(q1 >= JOINT1_RANGE[0] - tolerance && q1 <= JOINT1_RANGE[1] + tolerance, "q1 {}°", q1 / DEG);
+            assert!(q2 >= JOINT2_RANGE[0] - tolerance && q2 <= JOINT2_RANGE[1] + tolerance, "q2 {}°", q2 / DEG);
+        }
+    }
+    assert!(episodes > 0, "random play ends episodes by the progress rule");
+}
+
+#[test]
+fn touch_forces_are_positive_in_contact_and_zero_in_the_air() {
+    let mut crawler = Crawler::new(endless(), 3);
+    for _ in 0..200 {
+        crawler.step_torques([0.0, 0.0]);
+    }
+    let grounded = observe(&crawler);
+    assert!(grounded[obs::BASE_TOUCH].iter().any(|&f| f > 0.0));
+    assert!(grounded[obs::TIP_TOUCH.start..obs::PREV_ACTION.start].iter().all(|&f| f >= 0.0));
+
+    crawler.hold_base_in_air(0.5);
+    for step in 0..300 {
+        crawler.step_torques(SquareWaveGait::FORWARD.torques(step as f32 * 0.002));
+        let airborne = observe(&crawler);
+        let touches = &airborne[obs::TIP_TOUCH.start..obs::PREV_ACTION.start];
+        assert!(touches.iter().all(|&f| f == 0.0), "step {step}: {touches:?}");
+    }
+}
+
+#[test]
+fn the_same_seed_gives_a_bit_identical_trajectory() {
+    let run = |seeds: &[u64]| {
+        let mut env = VecEnv::new(&EnvConfig::default(), seeds);
+        let mut rng = ChaCha8Rng::seed_from_u64(5);
+        let mut trace = Vec::new();
+        for _ in 0..3_000 {
+            let actions: Vec<u32> = (0..seeds.len()).map(|_| rng.random_range(0..25)).collect();
+            env.step(&actions);
+            trace.extend(env.next_observations().iter().map(|v| v.to_bits()));
+            trace.extend(env.rewards().iter().map(|v| v.to_bits()));
+        }
+        trace
+    };
+    assert_eq!(run(&[11, 12]), run(&[11, 12]));
+    assert_ne!(run(&[11, 12]), run(&[13, 12]));
+    // A crawler's start does not depend on its neighbours.
+    let alone = Crawler::new(EnvConfig::default(), 42);
+    let env = VecEnv::new(&EnvConfig::default(), &[7, 42]);
+    assert_eq!(&env.observations()[OBS_DIM..], &observe(&alone)[..]);
+}
+
+#[test]
+fn the_sign_of_the_position_reward_follows_the_direction() {
+    let mut totals = Vec::new();
+    for direction in [Direction::Forward, Direction::Backward] {
+        let config = EnvConfig { direction, ..endless() };
+        let mut crawler = Crawler::new(config, 1);
+        let dt = crawler.config().dt;
+        let mut position = 0.0;
+        for step in 0..2_500 {
+            position += crawler.step_torques(SquareWaveGait::FORWARD.torques(step as f32 * dt)).reward.position;
+        }
+        totals.push(position);
+    }
+    assert!(totals[0] > 1.0 && totals[1] < -1.0, "{totals:?}");
+    assert!((totals[0] + totals[1]).abs() < 1e-3, "same motion, opposite sign: {totals:?}");
+}
+
+#[test]
+fn an_open_loop_square_wave_crawls_forward() {
+    for seed in 0..3 {
+        let mut crawler = Crawler::new(endless(), seed);
+        let flipped_steps = run_gait(&mut crawler, &SquareWaveGait::FORWARD, 20.0);
+        let speed = crawler.distance() / 20.0;
+        assert!(speed >= 0.3, "seed {seed}: {speed} m/s");
+        assert_eq!(flipped_steps, 0, "seed {seed} flipped");
+    }
+}
+
+#[test]
+fn idle_episodes_terminate_and_long_ones_truncate() {
+    let config = EnvConfig::default();
+    let mut crawler = Crawler::new(config.clone(), 0);
+    let mut steps = 0;
+    let outcome = loop {
+        let outcome = crawler.step_torques([0.0, 0.0]);
+        steps += 1;
+        if outcome.done() {
+            break outcome;
+        }
+    };
+    assert!(outcome.terminated && !outcome.truncated);
+    assert_eq!(steps, config.min_episode_steps, "no progress ends the episode right after the minimum");
+
+    let short = EnvConfig { max_episode_steps: 1_500, action_repeat: 10, ..config };
+    let mut crawler = Crawler::new(short, 0);
+    let mut decisions = 0;
+    let outcome = loop {
+        let t = crawler.episode_physics_steps() as f32 * 0.002;
+        let outcome = crawler.step_torques(SquareWaveGait::FORWARD.torques(t));
+        decisions += 1;
+        if outcome.done() {
+            break outcome;
+        }
+    };
+    assert!(outcome.truncated && !outcome.terminated, "{outcome:?}");
+    assert_eq!(crawler.episode_physics_steps(), 1_500);
+    assert_eq!(decisions, 150, "each decision holds for action_repeat physics steps");
+    let summary = crawler.episode_summary(Some(outcome));
+    assert!(summary.truncated && (summary.duration - 3.0).abs() < 1e-4 && summary.speed > 0.2, "{summary:?}");
+}
+
+#[test]
+fn pose_recording_has_a_frame_per_physics_step() {
+    let mut crawler = Crawler::new(EnvConfig { action_repeat: 4, ..endless() }, 2);
+    crawler.set_recording(true);
+    for _ in 0..25 {
+        crawler.step(12);
+    }
+    let frames = crawler.recorded_frames();
+    assert_eq!(frames.len(), 101);
+    assert!((frames[100].time - 0.2).abs() < 1e-5);
+    let last = frames[100];
+    assert_eq!(last.joint_angles, crawler.joint_angles());
+    assert!((last.base[0] - crawler.base_x()).abs() < 1e-6);
+    crawler.reset();
+    assert_eq!(crawler.recorded_frames().len(), 1, "a reset starts a new recording");
+}
+
+#[test]
+fn bad_settings_are_rejected_by_name() {
+    let bad = EnvConfig { action_levels: 1, ..EnvConfig::default() };
+    let message = bad.validate().unwrap_err().to_string();
+    assert!(message.contains("env.action_levels") && message.contains("2..=15"), "{message}");
+    let bad = EnvConfig { dt: f32::NAN, ..EnvConfig::default() };
+    assert!(bad.validate().unwrap_err().to_string().contains("env.dt"));
+    assert!(EnvConfig::default().validate().is_ok());
+}

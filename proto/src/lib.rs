@@ -1,0 +1,1 @@
+//! The contract between actors and the learner: what crosses the wire.
