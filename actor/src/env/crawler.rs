@@ -452,10 +452,13 @@ fn pose_frame(world: &PhysicsWorld, handles: &Handles, time: f32) -> PoseFrame {
 /// Builds the crawler's world with the base at rest and the joints at (q1, q2). If the arm
 /// would reach into the floor, the whole crawler is lifted just clear of it.
 fn build_world(config: &EnvConfig, q1: f32, q2: f32) -> (PhysicsWorld, Handles) {
-    let mut world = PhysicsWorld::default();
-    world.gravity = Vector::new(0.0, 0.0, GRAVITY);
-    world.integration_parameters.dt = config.dt;
-    world.integration_parameters.num_solver_iterations = config.solver_iterations as usize;
+    let integration_parameters = IntegrationParameters {
+        dt: config.dt,
+        num_solver_iterations: config.solver_iterations as usize,
+        ..IntegrationParameters::default()
+    };
+    let mut world =
+        PhysicsWorld { gravity: Vector::new(0.0, 0.0, GRAVITY), integration_parameters, ..PhysicsWorld::default() };
 
     // MuJoCo combines two geoms' frictions by taking the larger. With `sliding_base`, every
     // pair takes the smaller instead and the floor gets the largest body friction, so each

@@ -1,0 +1,1 @@
+//! The learner side of crawler: replay, the libtorch Double DQN, checkpoints and metrics.
