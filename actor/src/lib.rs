@@ -1,4 +1,6 @@
-//! The actor side of crawler: the rapier3d crawler environment and (later) the policy and
-//! zenoh loop. The environment in [`env`] knows nothing of networks or neural nets.
+//! The actor side of crawler: the rapier3d crawler environment ([`env`]) and acting with a
+//! Q-network in plain Rust ([`policy`]). The environment knows nothing of networks or neural
+//! nets; nothing here links libtorch.
 
 pub mod env;
+pub mod policy;

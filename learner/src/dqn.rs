@@ -1,0 +1,169 @@
+//! The Double DQN update: TD targets, loss, Adam and target-network upkeep.
+
+use crawler_actor::policy::NetworkSpec;
+use serde::{Deserialize, Serialize};
+use tch::{Kind, Reduction, Tensor};
+
+use crate::adam::{AdamConfig, FlatAdam};
+use crate::network::QNetwork;
+
+/// How the TD error becomes a loss.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum LossKind {
+    /// Squared error, as in the study.
+    Mse,
+    /// Huber loss with δ = 1 (smooth L1).
+    Huber,
+}
+
+/// How the target network follows the online one.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase", deny_unknown_fields)]
+pub enum TargetUpdate {
+    /// Copy the online weights every `every` updates.
+    Hard { every: u64 },
+    /// θ⁻ ← (1 − τ)·θ⁻ + τ·θ after every update.
+    Polyak { tau: f64 },
+}
+
+/// Settings of the DQN update.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct DqnConfig {
+    pub network: NetworkSpec,
+    /// Discount factor γ.
+    pub gamma: f64,
+    /// Adam's learning rate.
+    pub lr: f64,
+    pub adam_eps: f64,
+    /// Double DQN (the online net picks the next action, the target net values it);
+    /// false gives vanilla DQN (the target net's max).
+    pub double: bool,
+    pub loss: LossKind,
+    /// Clip the gradient's global L2 norm to this; none when absent.
+    pub max_grad_norm: Option<f64>,
+    pub target_update: TargetUpdate,
+    /// Seed of torch's RNG for the initial weights.
+    pub seed: u64,
+}
+
+impl Default for DqnConfig {
+    fn default() -> Self {
+        Self {
+            network: NetworkSpec::study(),
+            gamma: 0.99,
+            lr: 5e-4,
+            adam_eps: 1e-8,
+            double: true,
+            loss: LossKind::Mse,
+            max_grad_norm: None,
+            target_update: TargetUpdate::Hard { every: 25_000 },
+            seed: 0,
+        }
+    }
+}
+
+/// One sampled minibatch, already as tensors. `discount` is γⁿ for an n-step transition that
+/// bootstraps and 0 for one that ended in termination.
+#[derive(Debug)]
+pub struct Batch {
+    pub observations: Tensor,
+    pub actions: Tensor,
+    pub returns: Tensor,
+    pub next_observations: Tensor,
+    pub discounts: Tensor,
+    /// Importance-sampling weights (prioritised replay), or None for uniform.
+    pub weights: Option<Tensor>,
+}
+
+/// What one update measured.
+#[derive(Debug, Clone, PartialEq)]
+pub struct UpdateStats {
+    pub loss: f64,
+    pub mean_q: f64,
+    /// |TD error| per sample, for priority updates.
+    pub td_errors: Vec<f32>,
+    pub grad_norm: f64,
+}
+
+/// Online and target Q-networks with their optimiser.
+#[derive(Debug)]
+pub struct Dqn {
+    pub config: DqnConfig,
+    pub online: QNetwork,
+    pub target: QNetwork,
+    pub optimizer: FlatAdam,
+    /// Gradient updates done.
+    pub updates: u64,
+}
+
+impl Dqn {
+    pub fn new(config: DqnConfig) -> Self {
+        tch::manual_seed(config.seed as i64);
+        let online = QNetwork::new(&config.network, true);
+        let mut target = QNetwork::new(&config.network, false);
+        target.copy_from(&online);
+        let adam = AdamConfig { lr: config.lr, eps: config.adam_eps, ..AdamConfig::default() };
+        let optimizer = FlatAdam::new(online.flat().numel() as i64, adam);
+        Self { config, online, target, optimizer, updates: 0 }
+    }
+
+    /// The TD target r + discount · Q⁻(s', a*) with a* chosen by the online net (Double) or
+    /// the target net (vanilla).
+    pub fn td_targets(&self, batch: &Batch) -> Tensor {
+        tch::no_grad(|| {
+            let next_target_q = self.target.forward(&batch.next_observations);
+            let bootstrap = if self.config.double {
+                let best = self.online.forward(&batch.next_observations).argmax(1, true);
+                next_target_q.gather(1, &best, false).squeeze_dim(1)
+            } else {
+                next_target_q.max_dim(1, false).0
+            };
+            &batch.returns + &batch.discounts * bootstrap
+        })
+    }
+
+    /// One gradient step on `batch`; updates the target network as configured.
+    pub fn update(&mut self, batch: &Batch) -> UpdateStats {
+        let targets = self.td_targets(batch);
+        let q = self.online.forward(&batch.observations).gather(1, &batch.actions.unsqueeze(1), false).squeeze_dim(1);
+        let elementwise = match self.config.loss {
+            LossKind::Mse => q.mse_loss(&targets, Reduction::None),
+            LossKind::Huber => q.huber_loss(&targets, Reduction::None, 1.0),
+        };
+        let loss = match &batch.weights {
+            Some(w) => (elementwise * w).mean(Kind::Float),
+            None => elementwise.mean(Kind::Float),
+        };
+        let mut grads = Tensor::run_backward(&[&loss], &[self.online.flat()], false, false);
+        let grad = grads.pop().unwrap_or_else(|| Tensor::zeros_like(self.online.flat()));
+        let grad_norm = grad.norm().double_value(&[]);
+        let grad = match self.config.max_grad_norm {
+            Some(max) if grad_norm > max => grad * (max / (grad_norm + 1e-6)),
+            _ => grad,
+        };
+        self.optimizer.step(self.online.flat_mut(), &grad);
+        self.updates += 1;
+        match self.config.target_update {
+            TargetUpdate::Hard { every } => {
+                if self.updates.is_multiple_of(every.max(1)) {
+                    self.target.copy_from(&self.online);
+                }
+            }
+            TargetUpdate::Polyak { tau } => self.target.polyak_from(&self.online, tau),
+        }
+        let td = (&q - &targets).detach().abs();
+        UpdateStats {
+            loss: loss.double_value(&[]),
+            mean_q: q.detach().mean(Kind::Float).double_value(&[]),
+            td_errors: Vec::<f32>::try_from(&td).unwrap_or_default(),
+            grad_norm,
+        }
+    }
+
+    /// Q-values of the online network for `batch × obs_dim` observations.
+    pub fn q_values(&self, observations: &Tensor) -> Tensor {
+        tch::no_grad(|| self.online.forward(observations))
+    }
+}

@@ -1,0 +1,151 @@
+//! The Q-network on libtorch, with every parameter in one contiguous buffer.
+//!
+//! Why one buffer: the optimiser, target copies and Polyak averaging then each become a
+//! handful of tensor ops over the whole network instead of one set per parameter tensor,
+//! and the gradient arrives as a single tensor from `run_backward`.
+
+use crawler_actor::policy::{NetworkSpec, ParamInfo};
+use tch::{Kind, Tensor};
+
+/// Parameter `info` lives at `offset..offset + info.numel()` of the flat buffer.
+#[derive(Debug, Clone)]
+pub struct ParamSlot {
+    pub info: ParamInfo,
+    pub offset: usize,
+}
+
+/// An MLP Q-network whose parameters are views into one flat f32 tensor.
+#[derive(Debug)]
+pub struct QNetwork {
+    spec: NetworkSpec,
+    slots: Vec<ParamSlot>,
+    /// All parameters, concatenated in `nn.Sequential` order.
+    flat: Tensor,
+}
+
+/// PyTorch's default LayerNorm epsilon.
+const LAYER_NORM_EPS: f64 = 1e-5;
+
+impl QNetwork {
+    /// A network initialised as PyTorch initialises `nn.Linear` (uniform in ±1/√fan_in for
+    /// weight and bias) and `nn.LayerNorm` (scale 1, shift 0), from torch's global RNG.
+    pub fn new(spec: &NetworkSpec, requires_grad: bool) -> Self {
+        let slots = slots_of(spec);
+        let total = slots.iter().map(|s| s.info.numel()).sum::<usize>() as i64;
+        let flat = Tensor::zeros([total], (Kind::Float, tch::Device::Cpu));
+        tch::no_grad(|| {
+            let mut fan_in = spec.obs_dim;
+            for slot in &slots {
+                let mut view = flat.narrow(0, slot.offset as i64, slot.info.numel() as i64);
+                let is_norm = spec.layer_norm && slot.info.shape.len() == 1 && is_layer_norm(spec, &slot.info.name);
+                if is_norm {
+                    if slot.info.name.ends_with("weight") {
+                        let _ = view.fill_(1.0);
+                    }
+                } else {
+                    if slot.info.shape.len() == 2 {
+                        fan_in = slot.info.shape[1];
+                    }
+                    let bound = 1.0 / (fan_in as f64).sqrt();
+                    let _ = view.uniform_(-bound, bound);
+                }
+            }
+        });
+        let flat = flat.set_requires_grad(requires_grad);
+        Self { spec: spec.clone(), slots, flat }
+    }
+
+    pub fn spec(&self) -> &NetworkSpec {
+        &self.spec
+    }
+
+    pub fn slots(&self) -> &[ParamSlot] {
+        &self.slots
+    }
+
+    /// The flat parameter buffer (a leaf that requires grad for an online network).
+    pub fn flat(&self) -> &Tensor {
+        &self.flat
+    }
+
+    pub fn flat_mut(&mut self) -> &mut Tensor {
+        &mut self.flat
+    }
+
+    /// Parameter `index` as a tensor of its own shape, viewing the flat buffer.
+    fn param(&self, index: usize) -> Tensor {
+        let slot = &self.slots[index];
+        let shape: Vec<i64> = slot.info.shape.iter().map(|&d| d as i64).collect();
+        self.flat.narrow(0, slot.offset as i64, slot.info.numel() as i64).view(shape.as_slice())
+    }
+
+    /// Q-values, `batch × num_actions`, for observations `batch × obs_dim`.
+    pub fn forward(&self, observations: &Tensor) -> Tensor {
+        let mut x = observations.shallow_clone();
+        let mut index = 0;
+        for &width in &self.spec.hidden {
+            let (weight, bias) = (self.param(index), self.param(index + 1));
+            index += 2;
+            x = x.linear(&weight, Some(&bias));
+            if self.spec.layer_norm {
+                let (scale, shift) = (self.param(index), self.param(index + 1));
+                index += 2;
+                x = x.layer_norm([width as i64], Some(&scale), Some(&shift), LAYER_NORM_EPS, false);
+            }
+            x = x.relu();
+        }
+        x.linear(&self.param(index), Some(&self.param(index + 1)))
+    }
+
+    /// Copies another network's parameters into this one (a hard target update).
+    pub fn copy_from(&mut self, other: &QNetwork) {
+        tch::no_grad(|| self.flat.copy_(&other.flat));
+    }
+
+    /// θ ← (1 − τ)·θ + τ·θ_other (a Polyak target update).
+    pub fn polyak_from(&mut self, other: &QNetwork, tau: f64) {
+        tch::no_grad(|| {
+            let _ = self.flat.lerp_(&other.flat, tau);
+        });
+    }
+
+    /// Every parameter as `(name, shape, values)`, in `nn.Sequential` order.
+    pub fn named_values(&self) -> Vec<(String, Vec<usize>, Vec<f32>)> {
+        let flat = self.flat.detach();
+        let values: Vec<f32> = Vec::<f32>::try_from(&flat).unwrap_or_default();
+        self.slots
+            .iter()
+            .map(|slot| {
+                let range = slot.offset..slot.offset + slot.info.numel();
+                (slot.info.name.clone(), slot.info.shape.clone(), values[range].to_vec())
+            })
+            .collect()
+    }
+
+    /// Overwrites all parameters from a flat vector in slot order.
+    pub fn load_flat(&mut self, values: &[f32]) -> Result<(), String> {
+        let expected = self.flat.numel();
+        if values.len() != expected {
+            return Err(format!("{} parameter values given; the network has {expected}", values.len()));
+        }
+        tch::no_grad(|| self.flat.copy_(&Tensor::from_slice(values)));
+        Ok(())
+    }
+}
+
+fn is_layer_norm(spec: &NetworkSpec, name: &str) -> bool {
+    let index: usize = name.split('.').next().and_then(|i| i.parse().ok()).unwrap_or(0);
+    spec.layer_norm && index % 3 == 1 && index / 3 < spec.hidden.len()
+}
+
+fn slots_of(spec: &NetworkSpec) -> Vec<ParamSlot> {
+    let mut offset = 0;
+    spec.params()
+        .into_iter()
+        .map(|info| {
+            let slot = ParamSlot { offset, info };
+            offset += slot.info.numel();
+            slot
+        })
+        .collect()
+}
