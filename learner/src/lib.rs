@@ -7,6 +7,7 @@
 //! - [`rate`]: the samples-per-insert limiter.
 
 pub mod adam;
+pub mod checkpoint;
 pub mod dqn;
 pub mod network;
 

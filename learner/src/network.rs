@@ -55,6 +55,20 @@ impl QNetwork {
         Self { spec: spec.clone(), slots, flat }
     }
 
+    /// A network over an existing flat parameter tensor of the right length.
+    pub fn from_flat(spec: &NetworkSpec, flat: Tensor) -> Result<Self, String> {
+        let slots = slots_of(spec);
+        let expected = spec.num_params();
+        if flat.numel() != expected || flat.kind() != Kind::Float {
+            return Err(format!(
+                "flat tensor has {} {:?} values; the network needs {expected} f32",
+                flat.numel(),
+                flat.kind()
+            ));
+        }
+        Ok(Self { spec: spec.clone(), slots, flat })
+    }
+
     pub fn spec(&self) -> &NetworkSpec {
         &self.spec
     }

@@ -1,0 +1,174 @@
+//! Checkpoints: round trip, atomicity, retention and corruption.
+
+use std::fs;
+
+use crawler_actor::policy::NetworkSpec;
+use crawler_learner::checkpoint::{self, CheckpointError, Progress};
+use crawler_learner::dqn::{Batch, Dqn, DqnConfig};
+use crawler_learner::replay::{Replay, ReplayConfig, SampledBatch, StreamId, Transition};
+use rand::SeedableRng;
+use tch::{Kind, Tensor};
+
+fn config(seed: u64) -> DqnConfig {
+    DqnConfig {
+        network: NetworkSpec { obs_dim: 40, hidden: vec![64, 32], num_actions: 25, layer_norm: true },
+        seed,
+        ..DqnConfig::default()
+    }
+}
+
+fn trained(seed: u64) -> Dqn {
+    let mut dqn = Dqn::new(config(seed));
+    for _ in 0..3 {
+        let batch = Batch {
+            observations: Tensor::randn([16, 40], (Kind::Float, tch::Device::Cpu)),
+            actions: Tensor::randint(25, [16], (Kind::Int64, tch::Device::Cpu)),
+            returns: Tensor::ones([16], (Kind::Float, tch::Device::Cpu)),
+            next_observations: Tensor::randn([16, 40], (Kind::Float, tch::Device::Cpu)),
+            discounts: Tensor::full([16], 0.99, (Kind::Float, tch::Device::Cpu)),
+            weights: None,
+        };
+        dqn.update(&batch);
+    }
+    dqn
+}
+
+fn progress(updates: u64) -> Progress {
+    Progress { updates, env_steps: 10 * updates, weights_version: updates / 2, epsilon: 0.25, ..Progress::default() }
+}
+
+fn bits(t: &Tensor) -> Vec<u32> {
+    Vec::<f32>::try_from(t.flatten(0, -1)).unwrap().into_iter().map(f32::to_bits).collect()
+}
+
+#[test]
+fn a_round_trip_gives_bit_identical_q_values_and_state() {
+    let dir = tempfile::tempdir().unwrap();
+    let dqn = trained(1);
+    let run_config = serde_json::json!({ "lr": 5e-4 });
+    let path = checkpoint::save(dir.path(), &dqn, "run-a", &progress(3), &run_config, None, 3).unwrap();
+    assert!(path.ends_with("step-000000000003"));
+
+    let loaded = checkpoint::load(dir.path()).unwrap();
+    assert_eq!(loaded.meta.run_id, "run-a");
+    assert_eq!(loaded.meta.progress, progress(3));
+    assert_eq!(loaded.meta.config, run_config);
+    let mut restored = Dqn::new(config(99));
+    restored.restore(&loaded).unwrap();
+
+    let inputs = Tensor::randn([8, 40], (Kind::Float, tch::Device::Cpu));
+    assert_eq!(bits(&dqn.q_values(&inputs)), bits(&restored.q_values(&inputs)));
+    assert_eq!(bits(&dqn.target.flat().detach()), bits(&restored.target.flat().detach()));
+    assert_eq!(bits(&dqn.optimizer.exp_avg_sq), bits(&restored.optimizer.exp_avg_sq));
+    assert_eq!((restored.optimizer.step, restored.updates), (3, 3));
+
+    // The weights load into a PyTorch-style name table as well.
+    let weights = fs::read(path.join("weights.safetensors")).unwrap();
+    let tensors = safetensors::SafeTensors::deserialize(&weights).unwrap();
+    let mut names: Vec<String> = tensors.names().into_iter().map(str::to_string).collect();
+    names.sort();
+    assert_eq!(
+        names,
+        ["0.bias", "0.weight", "1.bias", "1.weight", "3.bias", "3.weight", "4.bias", "4.weight", "6.bias", "6.weight"]
+    );
+}
+
+#[test]
+fn corrupt_or_truncated_files_are_named() {
+    let dir = tempfile::tempdir().unwrap();
+    let path =
+        checkpoint::save(dir.path(), &trained(2), "run", &progress(1), &serde_json::Value::Null, None, 3).unwrap();
+    let weights = path.join("weights.safetensors");
+    let original = fs::read(&weights).unwrap();
+
+    let mut flipped = original.clone();
+    let middle = flipped.len() / 2;
+    flipped[middle] ^= 0x40;
+    fs::write(&weights, &flipped).unwrap();
+    let err = checkpoint::load(&path).unwrap_err();
+    assert!(matches!(err, CheckpointError::Corrupt { .. }));
+    let message = err.to_string();
+    assert!(message.contains("weights.safetensors") && message.contains("CRC-32"), "{message}");
+
+    fs::write(&weights, &original[..original.len() - 10]).unwrap();
+    let message = checkpoint::load(&path).unwrap_err().to_string();
+    assert!(message.contains("weights.safetensors") && message.contains("truncated"), "{message}");
+
+    fs::write(&weights, &original).unwrap();
+    assert!(checkpoint::load(&path).is_ok());
+    fs::write(path.join("meta.json"), b"{ not json").unwrap();
+    let message = checkpoint::load(&path).unwrap_err().to_string();
+    assert!(message.contains("meta.json"), "{message}");
+}
+
+#[test]
+fn a_checkpoint_of_another_network_is_rejected() {
+    let dir = tempfile::tempdir().unwrap();
+    checkpoint::save(dir.path(), &trained(3), "run", &progress(1), &serde_json::Value::Null, None, 3).unwrap();
+    let loaded = checkpoint::load(dir.path()).unwrap();
+    let other = DqnConfig { network: NetworkSpec { hidden: vec![64, 16], ..config(0).network }, ..config(0) };
+    let err = Dqn::new(other).restore(&loaded).unwrap_err().to_string();
+    assert!(err.contains("network") && err.contains("16"), "{err}");
+}
+
+#[test]
+fn only_the_newest_are_kept_and_partial_writes_are_ignored() {
+    let dir = tempfile::tempdir().unwrap();
+    let dqn = trained(4);
+    for updates in 1..=5 {
+        checkpoint::save(dir.path(), &dqn, "run", &progress(updates), &serde_json::Value::Null, None, 2).unwrap();
+    }
+    let names: Vec<String> = checkpoint::list(dir.path())
+        .unwrap()
+        .iter()
+        .map(|p| p.file_name().unwrap().to_string_lossy().into_owned())
+        .collect();
+    assert_eq!(names, ["step-000000000004", "step-000000000005"]);
+    // A crash mid-write leaves a partial directory: it is never taken for a checkpoint.
+    let partial = dir.path().join("step-000000000009.partial-1");
+    fs::create_dir(&partial).unwrap();
+    fs::write(partial.join("weights.safetensors"), b"half").unwrap();
+    assert!(checkpoint::latest(dir.path()).unwrap().ends_with("step-000000000005"));
+    assert_eq!(checkpoint::load(dir.path()).unwrap().meta.progress.updates, 5);
+    // The next save clears it away.
+    checkpoint::save(dir.path(), &dqn, "run", &progress(6), &serde_json::Value::Null, None, 2).unwrap();
+    assert!(!partial.exists());
+    let empty = tempfile::tempdir().unwrap();
+    assert!(matches!(checkpoint::load(empty.path()), Err(CheckpointError::NotFound(_))));
+}
+
+#[test]
+fn the_replay_snapshot_round_trips() {
+    let mut replay = Replay::new(ReplayConfig { capacity: 64, n_step: 3, prioritized: None }, 40).unwrap();
+    for t in 0..100 {
+        let obs = vec![t as f32; 40];
+        let next = vec![t as f32 + 1.0; 40];
+        let transition = Transition {
+            observation: &obs,
+            action: (t % 25) as u8,
+            reward: t as f32,
+            next_observation: &next,
+            terminated: t % 30 == 29,
+            truncated: false,
+        };
+        replay.insert(StreamId { actor: 0, env: 0 }, &transition).unwrap();
+    }
+    let dir = tempfile::tempdir().unwrap();
+    checkpoint::save(dir.path(), &trained(5), "run", &progress(1), &serde_json::Value::Null, Some(&replay), 1).unwrap();
+    let loaded = checkpoint::load(dir.path()).unwrap();
+    let restored = checkpoint::load_replay(&loaded).unwrap().unwrap();
+    assert_eq!(restored.len(), replay.len());
+    let draw = |r: &Replay| {
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(8);
+        let mut out = SampledBatch::default();
+        r.sample(32, 0.9, 0.0, &mut rng, &mut out).unwrap();
+        (out.observations, out.returns, out.discounts, out.next_observations)
+    };
+    assert_eq!(draw(&restored), draw(&replay));
+    // A snapshot cut short is detected.
+    let snapshot = loaded.path.join("replay.bin");
+    let bytes = fs::read(&snapshot).unwrap();
+    fs::write(&snapshot, &bytes[..bytes.len() / 2]).unwrap();
+    let message = checkpoint::load_replay(&loaded).unwrap_err().to_string();
+    assert!(message.contains("replay.bin"), "{message}");
+}
