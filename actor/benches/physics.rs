@@ -31,9 +31,7 @@ fn measure(k: usize, physics_steps: u32) -> f64 {
 }
 
 fn main() {
-    // `cargo test --benches` passes --bench-less flags; a quick run keeps that cheap.
-    let quick = std::env::args().any(|a| a == "--test");
-    let steps = if quick { 200 } else { 50_000 };
+    let steps = 50_000;
     measure(1, steps / 10); // warm-up
     for k in [1usize, 16] {
         let per_crawler = if k == 1 { steps } else { steps / 8 };

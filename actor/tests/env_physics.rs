@@ -1,5 +1,7 @@
 //! Behaviour of the crawler environment: layout, physics sanity, determinism, rewards.
 
+#![allow(clippy::unwrap_used)] // Tests: a panic is a failure with a message.
+
 use crawler_actor::env::gait::SquareWaveGait;
 use crawler_actor::env::model::{DEG, JOINT1_RANGE, JOINT2_RANGE};
 use crawler_actor::env::observation as obs;

@@ -155,8 +155,8 @@ pub fn save(
     };
     write(WEIGHTS, &|w| w.write_all(&encode_weights(&dqn.online)))?;
     write(TARGET, &|w| w.write_all(&encode_weights(&dqn.target)))?;
-    let exp_avg = f32_bytes(&Vec::<f32>::try_from(&dqn.optimizer.exp_avg).unwrap_or_default());
-    let exp_avg_sq = f32_bytes(&Vec::<f32>::try_from(&dqn.optimizer.exp_avg_sq).unwrap_or_default());
+    let exp_avg = f32_bytes(&dqn.optimizer.exp_avg);
+    let exp_avg_sq = f32_bytes(&dqn.optimizer.exp_avg_sq);
     let n = dqn.online.flat().numel();
     let optimizer =
         serialize([("exp_avg", vec![n], &exp_avg[..]), ("exp_avg_sq", vec![n], &exp_avg_sq[..])].into_iter());
@@ -375,10 +375,8 @@ impl Dqn {
         let bad = |e: String| corrupt(&checkpoint.path, e);
         self.online.load_flat(&checkpoint.online).map_err(bad)?;
         self.target.load_flat(&checkpoint.target).map_err(bad)?;
-        tch::no_grad(|| {
-            self.optimizer.exp_avg.copy_(&tch::Tensor::from_slice(&checkpoint.exp_avg));
-            self.optimizer.exp_avg_sq.copy_(&tch::Tensor::from_slice(&checkpoint.exp_avg_sq));
-        });
+        self.optimizer.exp_avg.clone_from(&checkpoint.exp_avg);
+        self.optimizer.exp_avg_sq.clone_from(&checkpoint.exp_avg_sq);
         self.optimizer.step = checkpoint.meta.adam_step;
         self.updates = checkpoint.meta.progress.updates;
         Ok(())

@@ -105,7 +105,7 @@ impl Dqn {
         let mut target = QNetwork::new(&config.network, false);
         target.copy_from(&online);
         let adam = AdamConfig { lr: config.lr, eps: config.adam_eps, ..AdamConfig::default() };
-        let optimizer = FlatAdam::new(online.flat().numel() as i64, adam);
+        let optimizer = FlatAdam::new(online.flat().numel(), adam);
         Self { config, online, target, optimizer, updates: 0 }
     }
 
@@ -136,8 +136,7 @@ impl Dqn {
             Some(w) => (elementwise * w).mean(Kind::Float),
             None => elementwise.mean(Kind::Float),
         };
-        let mut grads = Tensor::run_backward(&[&loss], &[self.online.flat()], false, false);
-        let grad = grads.pop().unwrap_or_else(|| Tensor::zeros_like(self.online.flat()));
+        let grad = self.online.flat_gradient(&loss);
         let grad_norm = grad.norm().double_value(&[]);
         let grad = match self.config.max_grad_norm {
             Some(max) if grad_norm > max => grad * (max / (grad_norm + 1e-6)),

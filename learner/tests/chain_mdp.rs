@@ -1,5 +1,7 @@
 //! Learning end to end in-process: DQN with replay converges to Q* on a chain MDP.
 
+#![allow(clippy::unwrap_used)] // Tests: a panic is a failure with a message.
+
 use crawler_actor::policy::NetworkSpec;
 use crawler_learner::dqn::{Batch, Dqn, DqnConfig, TargetUpdate};
 use crawler_learner::replay::{Replay, ReplayConfig, SampledBatch, StreamId, Transition};

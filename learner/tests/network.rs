@@ -1,5 +1,7 @@
 //! The Q-network: plain-Rust inference parity, Adam parity, and the TD targets.
 
+#![allow(clippy::unwrap_used)] // Tests: a panic is a failure with a message.
+
 use crawler_actor::policy::{MlpPolicy, NetworkSpec};
 use crawler_learner::adam::{AdamConfig, FlatAdam};
 use crawler_learner::checkpoint::encode_weights;
@@ -57,23 +59,40 @@ fn flat_adam_matches_libtorch_adam() {
     let spec = small();
     tch::manual_seed(7);
     let mut ours = QNetwork::new(&spec, true);
+    // The reference: libtorch's Adam over the same parameters, one tensor each.
     let vs = nn::VarStore::new(tch::Device::Cpu);
-    let reference_flat = vs.root().var_copy("flat", ours.flat());
-    let reference = QNetwork::from_flat(&spec, reference_flat).unwrap();
+    for (i, p) in ours.params().iter().enumerate() {
+        let _ = vs.root().var_copy(&format!("p{i}"), p);
+    }
+    let reference_params = vs.trainable_variables();
     let config = AdamConfig { lr: 1e-3, ..AdamConfig::default() };
-    let mut adam = FlatAdam::new(ours.flat().numel() as i64, config);
+    let mut adam = FlatAdam::new(ours.flat().numel(), config);
     let mut torch_adam = nn::Adam::default().build(&vs, config.lr).unwrap();
     for step in 0..25 {
         let inputs = Tensor::randn([32, 40], (Kind::Float, tch::Device::Cpu));
         let targets = Tensor::randn([32, 25], (Kind::Float, tch::Device::Cpu));
         let loss = ours.forward(&inputs).mse_loss(&targets, tch::Reduction::Mean);
-        let grad = Tensor::run_backward(&[&loss], &[ours.flat()], false, false).pop().unwrap();
+        let grad = ours.flat_gradient(&loss);
         adam.step(ours.flat_mut(), &grad);
-        let reference_loss = reference.forward(&inputs).mse_loss(&targets, tch::Reduction::Mean);
+        let reference_loss = forward_with(&spec, &reference_params, &inputs).mse_loss(&targets, tch::Reduction::Mean);
         torch_adam.backward_step(&reference_loss);
-        let diff = (ours.flat() - reference.flat()).abs().max().double_value(&[]);
+        let reference_flat =
+            Tensor::cat(&reference_params.iter().map(|p| p.detach().view([-1])).collect::<Vec<_>>(), 0);
+        let diff = (ours.flat() - reference_flat).abs().max().double_value(&[]);
         assert!(diff < 1e-6, "step {step}: parameters differ by {diff}");
     }
+}
+
+/// The MLP forward pass over a list of separate parameter tensors (LayerNorm variant).
+fn forward_with(spec: &NetworkSpec, params: &[Tensor], x: &Tensor) -> Tensor {
+    let mut x = x.shallow_clone();
+    let mut i = 0;
+    for &width in &spec.hidden {
+        x = x.linear(&params[i], Some(&params[i + 1]));
+        x = x.layer_norm([width as i64], Some(&params[i + 2]), Some(&params[i + 3]), 1e-5, false).relu();
+        i += 4;
+    }
+    x.linear(&params[i], Some(&params[i + 1]))
 }
 
 /// A linear network (no hidden layer): Q(s) = W s + b, with W and b set by hand.

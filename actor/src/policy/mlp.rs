@@ -25,8 +25,8 @@ pub enum PolicyError {
 struct Dense {
     inputs: usize,
     outputs: usize,
-    /// Row-major `outputs × inputs`, as PyTorch stores a Linear's weight.
-    weight: Vec<f32>,
+    /// Row-major `inputs × outputs`: PyTorch's Linear weight, transposed.
+    weight_t: Vec<f32>,
     bias: Vec<f32>,
     /// LayerNorm's scale and shift, where the layer has one.
     norm: Option<(Vec<f32>, Vec<f32>)>,
@@ -71,11 +71,13 @@ impl MlpPolicy {
         for &width in &spec.hidden {
             let (weight, bias) = (next()?, next()?);
             let norm = if spec.layer_norm { Some((next()?, next()?)) } else { None };
-            layers.push(Dense { inputs, outputs: width, weight, bias, norm, relu: true });
+            let weight_t = transpose(&weight, width, inputs);
+            layers.push(Dense { inputs, outputs: width, weight_t, bias, norm, relu: true });
             inputs = width;
         }
         let (weight, bias) = (next()?, next()?);
-        layers.push(Dense { inputs, outputs: spec.num_actions, weight, bias, norm: None, relu: false });
+        let weight_t = transpose(&weight, spec.num_actions, inputs);
+        layers.push(Dense { inputs, outputs: spec.num_actions, weight_t, bias, norm: None, relu: false });
         Ok(Self { spec: spec.clone(), layers })
     }
 
@@ -87,7 +89,7 @@ impl MlpPolicy {
     /// values, sample-major.
     pub fn q_values(&self, observations: &[f32]) -> Result<Vec<f32>, PolicyError> {
         let obs_dim = self.spec.obs_dim;
-        if observations.len() % obs_dim != 0 {
+        if !observations.len().is_multiple_of(obs_dim) {
             return Err(PolicyError::InputSize { len: observations.len(), obs_dim });
         }
         let batch = observations.len() / obs_dim;
@@ -114,10 +116,42 @@ impl Dense {
     fn forward(&self, input: &[f32], batch: usize, output: &mut Vec<f32>) {
         output.clear();
         output.resize(batch * self.outputs, 0.0);
-        for (x, y) in input.chunks_exact(self.inputs).zip(output.chunks_exact_mut(self.outputs)) {
-            for ((yo, row), b) in y.iter_mut().zip(self.weight.chunks_exact(self.inputs)).zip(&self.bias) {
-                *yo = dot(row, x) + b;
+        // y = b + Σᵢ xᵢ·Wᵀ[i]: each step adds a contiguous weight row to the outputs (an axpy,
+        // which vectorises without reordering any sum), and four samples share each pass over
+        // the weights, which are most of the memory traffic.
+        let mut x_blocks = input.chunks_exact(4 * self.inputs);
+        let mut y_blocks = output.chunks_exact_mut(4 * self.outputs);
+        for (x, y) in (&mut x_blocks).zip(&mut y_blocks) {
+            let (y01, y23) = y.split_at_mut(2 * self.outputs);
+            let (y0, y1) = y01.split_at_mut(self.outputs);
+            let (y2, y3) = y23.split_at_mut(self.outputs);
+            for yk in [&mut *y0, &mut *y1, &mut *y2, &mut *y3] {
+                yk.copy_from_slice(&self.bias);
             }
+            for (i, w) in self.weight_t.chunks_exact(self.outputs).enumerate() {
+                let a = [x[i], x[self.inputs + i], x[2 * self.inputs + i], x[3 * self.inputs + i]];
+                let lanes = y0.iter_mut().zip(y1.iter_mut()).zip(y2.iter_mut().zip(y3.iter_mut())).zip(w);
+                for (((o0, o1), (o2, o3)), &wo) in lanes {
+                    *o0 += a[0] * wo;
+                    *o1 += a[1] * wo;
+                    *o2 += a[2] * wo;
+                    *o3 += a[3] * wo;
+                }
+            }
+        }
+        let rest = x_blocks.remainder().chunks_exact(self.inputs);
+        for (x, y) in rest.zip(y_blocks.into_remainder().chunks_exact_mut(self.outputs)) {
+            y.copy_from_slice(&self.bias);
+            for (&a, w) in x.iter().zip(self.weight_t.chunks_exact(self.outputs)) {
+                // After a ReLU about half the inputs are zero: skip their rows.
+                if a != 0.0 {
+                    for (o, &wo) in y.iter_mut().zip(w) {
+                        *o += a * wo;
+                    }
+                }
+            }
+        }
+        for y in output.chunks_exact_mut(self.outputs) {
             if let Some((scale, shift)) = &self.norm {
                 layer_norm(y, scale, shift);
             }
@@ -130,18 +164,15 @@ impl Dense {
     }
 }
 
-/// Dot product with eight independent partial sums, which the compiler turns into SIMD.
-fn dot(a: &[f32], b: &[f32]) -> f32 {
-    const LANES: usize = 8;
-    let mut partial = [0.0f32; LANES];
-    let (a_chunks, b_chunks) = (a.chunks_exact(LANES), b.chunks_exact(LANES));
-    let tail: f32 = a_chunks.remainder().iter().zip(b_chunks.remainder()).map(|(x, y)| x * y).sum();
-    for (ca, cb) in a_chunks.zip(b_chunks) {
-        for lane in 0..LANES {
-            partial[lane] += ca[lane] * cb[lane];
+/// A row-major `rows × cols` matrix transposed.
+fn transpose(matrix: &[f32], rows: usize, cols: usize) -> Vec<f32> {
+    let mut out = vec![0.0; matrix.len()];
+    for r in 0..rows {
+        for c in 0..cols {
+            out[c * rows + r] = matrix[r * cols + c];
         }
     }
-    partial.iter().sum::<f32>() + tail
+    out
 }
 
 fn layer_norm(values: &mut [f32], scale: &[f32], shift: &[f32]) {
