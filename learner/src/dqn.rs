@@ -19,7 +19,7 @@ pub enum LossKind {
 
 /// How the target network follows the online one.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
-#[serde(rename_all = "lowercase", deny_unknown_fields)]
+#[serde(tag = "kind", rename_all = "lowercase", deny_unknown_fields)]
 pub enum TargetUpdate {
     /// Copy the online weights every `every` updates.
     Hard { every: u64 },

@@ -8,6 +8,7 @@
 
 pub mod adam;
 pub mod checkpoint;
+pub mod config;
 pub mod dqn;
 pub mod network;
 
@@ -19,6 +20,7 @@ pub fn set_torch_threads(threads: usize) {
 }
 pub mod rate;
 pub mod replay;
+pub mod service;
 pub mod sum_tree;
 
 /// Keeps large freed blocks in glibc's heap instead of returning them to the OS at once.

@@ -1,0 +1,436 @@
+//! The actor process: a zenoh client that simulates crawlers and feeds the learner.
+//!
+//! Two halves: an async half (zenoh I/O, status, signals) and a simulation thread that steps
+//! K crawlers with batched plain-Rust inference. They meet at three points, each bounded:
+//! - the latest weights, in a `watch` channel: the simulation swaps them in between steps;
+//! - outgoing messages, in a bounded channel: when the link is slow the simulation waits
+//!   (back-pressure) instead of queueing without limit;
+//! - a stop flag.
+
+use std::sync::Arc;
+use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
+use std::time::{Duration, Instant};
+
+use crawler_proto::{self as proto, PROTOCOL_VERSION, keys};
+use prost::Message;
+use rand::{Rng, SeedableRng};
+use rand_chacha::ChaCha8Rng;
+use tokio::sync::{mpsc, watch};
+use tracing::{debug, info, warn};
+use zenoh::qos::CongestionControl;
+
+use crate::env::{OBS_DIM, VecEnv};
+use crate::policy::{MlpPolicy, NetworkSpec};
+use crate::settings::ActorSettings;
+
+/// How to run an actor.
+#[derive(Debug, Clone)]
+pub struct ActorOptions {
+    /// zenoh endpoints of the learner, e.g. `tcp/127.0.0.1:7447`.
+    pub connect: Vec<String>,
+    pub id: u32,
+    /// The run to join; when absent, the first run a learner offers.
+    pub run: Option<String>,
+    /// ε = 0 and only evaluation stats are published.
+    pub evaluator: bool,
+    /// Extra zenoh settings as JSON5 `key=value` pairs (TLS, auth), applied last.
+    pub zenoh_overrides: Vec<(String, String)>,
+    /// Stop after this many decisions per crawler (none: run until told to stop).
+    pub max_steps: Option<u64>,
+}
+
+#[derive(Debug, thiserror::Error)]
+pub enum NodeError {
+    #[error("zenoh: {context}: {message}")]
+    Zenoh { context: String, message: String },
+    #[error("the run's actor settings are unusable: {0}")]
+    Settings(String),
+    #[error("weights: {0}")]
+    Weights(String),
+}
+
+fn zenoh_error(context: impl Into<String>) -> impl FnOnce(zenoh::Error) -> NodeError {
+    let context = context.into();
+    move |e| NodeError::Zenoh { context, message: e.to_string() }
+}
+
+/// A client config that waits for the learner forever and retries quickly.
+pub fn client_config(connect: &[String], overrides: &[(String, String)]) -> Result<zenoh::Config, NodeError> {
+    let mut config = zenoh::Config::default();
+    let endpoints = serde_json_list(connect);
+    let settings = [
+        ("mode", "\"client\"".to_string()),
+        ("connect/endpoints", endpoints),
+        ("connect/timeout_ms", "-1".to_string()),
+        ("connect/exit_on_failure", "false".to_string()),
+        ("connect/retry", "{ period_init_ms: 250, period_max_ms: 1000, period_increase_factor: 2 }".to_string()),
+        ("scouting/multicast/enabled", "false".to_string()),
+    ];
+    for (key, value) in settings.iter().map(|(k, v)| (k.to_string(), v.clone())).chain(overrides.iter().cloned()) {
+        config.insert_json5(&key, &value).map_err(zenoh_error(format!("setting {key} = {value}")))?;
+    }
+    Ok(config)
+}
+
+/// A JSON list of strings.
+pub fn serde_json_list(items: &[String]) -> String {
+    let quoted: Vec<String> = items.iter().map(|s| format!("{s:?}")).collect();
+    format!("[{}]", quoted.join(","))
+}
+
+/// Weights the simulation can act with.
+#[derive(Debug)]
+struct LoadedPolicy {
+    version: u64,
+    policy: MlpPolicy,
+}
+
+enum Outgoing {
+    Batch(proto::TransitionBatch),
+    Stats(proto::EpisodeStats),
+}
+
+/// Counters shared between the simulation and status reports.
+#[derive(Debug, Default)]
+struct Counters {
+    env_steps: AtomicU64,
+    physics_steps: AtomicU64,
+    weights_version: AtomicU64,
+    epsilon_bits: AtomicU64,
+}
+
+/// Runs an actor until the learner says stop, `stop` is set, or `max_steps` is reached.
+pub async fn run(options: ActorOptions, stop: Arc<AtomicBool>) -> Result<(), NodeError> {
+    let config = client_config(&options.connect, &options.zenoh_overrides)?;
+    info!(endpoints = ?options.connect, id = options.id, "connecting to the learner");
+    let session = zenoh::open(config).await.map_err(zenoh_error("opening the session"))?;
+
+    let (run_id, settings) = fetch_run_info(&session, options.run.as_deref(), &stop).await?;
+    info!(run = %run_id, envs = settings.envs_per_actor, evaluator = options.evaluator, "joined run");
+    let spec =
+        NetworkSpec { obs_dim: OBS_DIM, hidden: vec![], num_actions: settings.env.num_actions(), layer_norm: true };
+
+    let (policy_tx, policy_rx) = watch::channel::<Option<Arc<LoadedPolicy>>>(None);
+    let policy_tx = Arc::new(policy_tx);
+    let accept_weights = {
+        let policy_tx = Arc::clone(&policy_tx);
+        let run_id = run_id.clone();
+        let expected = spec.clone();
+        move |bytes: &[u8]| match load_weights(bytes, &run_id, &expected) {
+            Ok(loaded) => {
+                let newer = policy_tx.borrow().as_ref().is_none_or(|p| loaded.version > p.version);
+                if newer {
+                    debug!(version = loaded.version, "new weights");
+                    policy_tx.send_replace(Some(Arc::new(loaded)));
+                }
+            }
+            Err(e) => warn!("ignoring weights: {e}"),
+        }
+    };
+    let on_weights = accept_weights.clone();
+    let _weights_subscriber = session
+        .declare_subscriber(keys::weights(&run_id))
+        .callback(move |sample| on_weights(&sample.payload().to_bytes()))
+        .await
+        .map_err(zenoh_error("subscribing to weights"))?;
+    let control_stop = Arc::clone(&stop);
+    let control_run = run_id.clone();
+    let _control_subscriber = session
+        .declare_subscriber(keys::control(&run_id))
+        .callback(move |sample| {
+            if let Ok(control) = proto::validate::control(&sample.payload().to_bytes(), &control_run)
+                && control.command == proto::Command::Stop as i32
+            {
+                info!("learner says stop");
+                control_stop.store(true, Ordering::SeqCst);
+            }
+        })
+        .await
+        .map_err(zenoh_error("subscribing to control"))?;
+    let _token = if options.evaluator {
+        None
+    } else {
+        let token = session.liveliness().declare_token(keys::alive_actor(&run_id, options.id)).await;
+        Some(token.map_err(zenoh_error("declaring liveliness"))?)
+    };
+
+    // A starting actor asks for the latest weights rather than waiting for the next publish.
+    let mut waited = Instant::now();
+    while policy_rx.borrow().is_none() && !stop.load(Ordering::SeqCst) {
+        if let Ok(replies) = session.get(keys::weights(&run_id)).timeout(Duration::from_secs(2)).await {
+            while let Ok(reply) = replies.recv_async().await {
+                if let Ok(sample) = reply.result() {
+                    accept_weights(&sample.payload().to_bytes());
+                }
+            }
+        }
+        if policy_rx.borrow().is_none() {
+            if waited.elapsed() > Duration::from_secs(10) {
+                info!("still waiting for the learner's weights");
+                waited = Instant::now();
+            }
+            tokio::time::sleep(Duration::from_millis(200)).await;
+        }
+    }
+
+    let transitions = session
+        .declare_publisher(keys::transitions(&run_id, options.id))
+        .congestion_control(CongestionControl::Block)
+        .await
+        .map_err(zenoh_error("declaring the transitions publisher"))?;
+    let stats = session
+        .declare_publisher(keys::stats(&run_id, options.id))
+        .congestion_control(CongestionControl::Drop)
+        .await
+        .map_err(zenoh_error("declaring the stats publisher"))?;
+    let status = session
+        .declare_publisher(keys::status(&run_id, options.id))
+        .congestion_control(CongestionControl::Drop)
+        .await
+        .map_err(zenoh_error("declaring the status publisher"))?;
+
+    let counters = Arc::new(Counters::default());
+    let (out_tx, mut out_rx) = mpsc::channel::<Outgoing>(8);
+    let simulation = {
+        let stop = Arc::clone(&stop);
+        let counters = Arc::clone(&counters);
+        let settings = settings.clone();
+        let run_id = run_id.clone();
+        let options = options.clone();
+        std::thread::Builder::new()
+            .name("simulation".into())
+            .spawn(move || simulate(&options, &run_id, &settings, policy_rx, &out_tx, &stop, &counters))
+            .map_err(|e| NodeError::Settings(format!("cannot start the simulation thread: {e}")))?
+    };
+
+    let mut ticker = tokio::time::interval(Duration::from_secs_f64(settings.status_interval_s));
+    let (mut last_steps, mut last_time) = (0u64, Instant::now());
+    loop {
+        tokio::select! {
+            message = out_rx.recv() => {
+                let Some(message) = message else { break };
+                let (publisher, bytes) = match &message {
+                    Outgoing::Batch(batch) => (&transitions, batch.encode_to_vec()),
+                    Outgoing::Stats(episode) => (&stats, episode.encode_to_vec()),
+                };
+                if let Err(e) = publisher.put(bytes).await {
+                    warn!("publish failed: {e}");
+                }
+            }
+            _ = ticker.tick() => {
+                let steps = counters.env_steps.load(Ordering::Relaxed);
+                let rate = (steps - last_steps) as f64 / last_time.elapsed().as_secs_f64().max(1e-9);
+                (last_steps, last_time) = (steps, Instant::now());
+                let report = proto::ActorStatus {
+                    protocol_version: PROTOCOL_VERSION,
+                    run_id: run_id.clone(),
+                    actor_id: options.id,
+                    weights_version: counters.weights_version.load(Ordering::Relaxed),
+                    env_steps: steps,
+                    physics_steps: counters.physics_steps.load(Ordering::Relaxed),
+                    env_steps_per_second: rate as f32,
+                    epsilon: f64::from_bits(counters.epsilon_bits.load(Ordering::Relaxed)),
+                    num_envs: settings.envs_per_actor as u32,
+                    evaluator: options.evaluator,
+                };
+                let _ = status.put(report.encode_to_vec()).await;
+                info!(steps, steps_per_s = format!("{rate:.0}"), weights = report.weights_version, epsilon = format!("{:.4}", report.epsilon), "actor status");
+            }
+        }
+    }
+    let result = simulation.join();
+    info!("actor {} stopped", options.id);
+    let _ = session.close().await;
+    match result {
+        Ok(()) => Ok(()),
+        Err(_) => Err(NodeError::Settings("the simulation thread panicked".into())),
+    }
+}
+
+/// Asks learners for their run info until one answers (or `stop` is set).
+async fn fetch_run_info(
+    session: &zenoh::Session,
+    run: Option<&str>,
+    stop: &AtomicBool,
+) -> Result<(String, ActorSettings), NodeError> {
+    let key = match run {
+        Some(run) => {
+            keys::check_run_id(run).map_err(|e| NodeError::Settings(e.to_string()))?;
+            keys::info(run)
+        }
+        None => keys::info("*"),
+    };
+    let mut announced = false;
+    while !stop.load(Ordering::SeqCst) {
+        if let Ok(replies) = session.get(&key).timeout(Duration::from_secs(2)).await {
+            while let Ok(reply) = replies.recv_async().await {
+                let Ok(sample) = reply.result() else { continue };
+                match proto::validate::run_info(&sample.payload().to_bytes()) {
+                    Ok(info) => {
+                        let settings: ActorSettings = serde_json::from_str(&info.actor_settings_json)
+                            .map_err(|e| NodeError::Settings(e.to_string()))?;
+                        settings.validate().map_err(NodeError::Settings)?;
+                        return Ok((info.run_id, settings));
+                    }
+                    Err(e) => warn!("ignoring run info: {e}"),
+                }
+            }
+        }
+        if !announced {
+            info!(key, "waiting for a learner");
+            announced = true;
+        }
+        tokio::time::sleep(Duration::from_millis(250)).await;
+    }
+    Err(NodeError::Settings("stopped before a learner answered".into()))
+}
+
+fn load_weights(bytes: &[u8], run_id: &str, expected: &NetworkSpec) -> Result<LoadedPolicy, NodeError> {
+    let weights = proto::validate::weights(bytes, run_id).map_err(|e| NodeError::Weights(e.to_string()))?;
+    let wire = weights.network.unwrap_or_default();
+    let spec = NetworkSpec {
+        obs_dim: wire.obs_dim as usize,
+        hidden: wire.hidden.iter().map(|&h| h as usize).collect(),
+        num_actions: wire.num_actions as usize,
+        layer_norm: wire.layer_norm,
+    };
+    if spec.obs_dim != expected.obs_dim || spec.num_actions != expected.num_actions {
+        return Err(NodeError::Weights(format!(
+            "network {}→{} does not fit this environment's {}→{}",
+            spec.obs_dim, spec.num_actions, expected.obs_dim, expected.num_actions
+        )));
+    }
+    let policy =
+        MlpPolicy::from_safetensors(&weights.safetensors, &spec).map_err(|e| NodeError::Weights(e.to_string()))?;
+    Ok(LoadedPolicy { version: weights.version, policy })
+}
+
+/// The simulation loop: act, step, batch transitions, report episodes.
+fn simulate(
+    options: &ActorOptions,
+    run_id: &str,
+    settings: &ActorSettings,
+    mut policy_rx: watch::Receiver<Option<Arc<LoadedPolicy>>>,
+    out: &mpsc::Sender<Outgoing>,
+    stop: &AtomicBool,
+    counters: &Counters,
+) {
+    let Some(mut policy) = policy_rx.borrow_and_update().clone() else { return };
+    let mut env = VecEnv::new(&settings.env, &settings.seeds(options.id));
+    let k = env.len();
+    let mut rng = ChaCha8Rng::seed_from_u64(settings.seed ^ (0x9E37_79B9 * (u64::from(options.id) + 1)));
+    // Distinct per process: start time mixed with the process id.
+    let started = std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).map_or(0, |d| d.as_nanos() as u64);
+    let incarnation = started ^ (u64::from(std::process::id()) << 40);
+    let num_actions = settings.env.num_actions() as u32;
+    let repeat = u64::from(settings.env.action_repeat);
+    let mut batch = new_batch(run_id, options.id, incarnation);
+    let mut greedy = Vec::with_capacity(k);
+    let mut actions = vec![0u32; k];
+    let mut observations = vec![0.0f32; k * OBS_DIM];
+    let mut steps_per_env = 0u64;
+    while !stop.load(Ordering::SeqCst) && options.max_steps.is_none_or(|max| steps_per_env < max) {
+        if policy_rx.has_changed().unwrap_or(false)
+            && let Some(latest) = policy_rx.borrow_and_update().clone()
+        {
+            policy = latest;
+        }
+        counters.weights_version.store(policy.version, Ordering::Relaxed);
+        let epsilon = if options.evaluator { 0.0 } else { settings.exploration.epsilon(options.id, steps_per_env) };
+        counters.epsilon_bits.store(epsilon.to_bits(), Ordering::Relaxed);
+        observations.copy_from_slice(env.observations());
+        if policy.policy.greedy_actions(&observations, &mut greedy).is_err() {
+            warn!("weights do not fit the observations; stopping");
+            return;
+        }
+        for (action, &best) in actions.iter_mut().zip(&greedy) {
+            *action = if rng.random::<f64>() < epsilon { rng.random_range(0..num_actions) } else { best };
+        }
+        let finished: Vec<_> = env.step(&actions).to_vec();
+        steps_per_env += 1;
+        counters.env_steps.fetch_add(k as u64, Ordering::Relaxed);
+        // An episode can end part-way through a held action; counting whole decisions
+        // overstates physics steps by less than one decision per episode.
+        let physics = k as u64 * repeat;
+        counters.physics_steps.fetch_add(physics, Ordering::Relaxed);
+
+        if !options.evaluator {
+            let next = env.next_observations();
+            for i in 0..k {
+                batch.env_ids.push(i as u32);
+                batch.observations.extend_from_slice(&observations[i * OBS_DIM..(i + 1) * OBS_DIM]);
+                batch.next_observations.extend_from_slice(&next[i * OBS_DIM..(i + 1) * OBS_DIM]);
+                batch.actions.push(actions[i]);
+                batch.rewards.push(env.rewards()[i]);
+                batch.terminated.push(env.terminated()[i]);
+                batch.truncated.push(env.truncated()[i]);
+            }
+            batch.physics_steps += physics;
+            if batch.len() >= settings.batch_transitions {
+                batch.weights_version = policy.version;
+                let full = std::mem::replace(&mut batch, new_batch(run_id, options.id, incarnation));
+                batch.sequence = full.sequence + 1;
+                if out.blocking_send(Outgoing::Batch(full)).is_err() {
+                    return;
+                }
+            }
+        }
+        for (_, summary) in finished {
+            let stats = proto::EpisodeStats {
+                protocol_version: PROTOCOL_VERSION,
+                run_id: run_id.to_string(),
+                actor_id: options.id,
+                epsilon,
+                episode_return: summary.reward.total(),
+                return_position: summary.reward.position,
+                return_upright: summary.reward.upright,
+                distance: summary.distance,
+                duration: summary.duration,
+                speed: summary.speed,
+                flips: summary.flips,
+                terminated: summary.terminated,
+                truncated: summary.truncated,
+                evaluation: options.evaluator,
+                weights_version: policy.version,
+            };
+            if out.blocking_send(Outgoing::Stats(stats)).is_err() {
+                return;
+            }
+        }
+    }
+}
+
+fn new_batch(run_id: &str, actor: u32, incarnation: u64) -> proto::TransitionBatch {
+    proto::TransitionBatch {
+        protocol_version: PROTOCOL_VERSION,
+        run_id: run_id.to_string(),
+        actor_id: actor,
+        incarnation,
+        obs_dim: OBS_DIM as u32,
+        ..Default::default()
+    }
+}
+
+/// Waits for Ctrl-C or SIGTERM, then sets `stop`.
+pub async fn stop_on_signal(stop: Arc<AtomicBool>) {
+    let ctrl_c = tokio::signal::ctrl_c();
+    #[cfg(unix)]
+    {
+        let mut term = match tokio::signal::unix::signal(tokio::signal::unix::SignalKind::terminate()) {
+            Ok(term) => term,
+            Err(_) => {
+                let _ = ctrl_c.await;
+                stop.store(true, Ordering::SeqCst);
+                return;
+            }
+        };
+        tokio::select! {
+            _ = ctrl_c => {}
+            _ = term.recv() => {}
+        }
+    }
+    #[cfg(not(unix))]
+    let _ = ctrl_c.await;
+    info!("signal received: stopping");
+    stop.store(true, Ordering::SeqCst);
+}

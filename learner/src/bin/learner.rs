@@ -1,0 +1,166 @@
+//! `learner`: trains the crawler. Owns replay and the DQN, runs the zenoh router actors
+//! connect to, and with `--actors N` starts N local actor processes: the one-command job.
+
+use std::path::{Path, PathBuf};
+use std::process::{Child, Command};
+use std::sync::Arc;
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::time::{Duration, Instant};
+
+use anyhow::{Context, bail};
+use clap::Parser;
+use crawler_learner::checkpoint;
+use crawler_learner::config::TrainConfig;
+use crawler_learner::service::{self, ServiceOptions};
+use tracing::{info, warn};
+
+#[derive(Debug, Parser)]
+#[command(version, about = "Train the crawler: replay, Double DQN and the zenoh router actors connect to")]
+struct Args {
+    /// TOML preset (see configs/).
+    #[arg(long, default_value = "configs/default.toml")]
+    config: PathBuf,
+    /// Override a setting, KEY=VALUE in TOML syntax (repeatable), e.g. --set dqn.lr=1e-3.
+    #[arg(long = "set", value_name = "KEY=VALUE")]
+    overrides: Vec<String>,
+    /// Local actor processes to start (0: only remote actors).
+    #[arg(long, default_value_t = 2)]
+    actors: usize,
+    /// Name of a new run (default: run-<unix time>).
+    #[arg(long, conflicts_with = "resume")]
+    run: Option<String>,
+    /// Continue run RUN from its newest checkpoint, with the config it was started with.
+    #[arg(long, value_name = "RUN")]
+    resume: Option<String>,
+    /// Extra zenoh settings, KEY=JSON5 (TLS, access control).
+    #[arg(long = "zenoh", value_name = "KEY=JSON5", value_delimiter = ';')]
+    zenoh: Vec<String>,
+    /// The actor executable (default: `actor` beside this one).
+    #[arg(long)]
+    actor_bin: Option<PathBuf>,
+}
+
+fn main() -> anyhow::Result<()> {
+    tracing_subscriber::fmt()
+        .with_writer(std::io::stderr)
+        .with_env_filter(
+            tracing_subscriber::EnvFilter::try_from_default_env().unwrap_or_else(|_| "info,zenoh=warn".into()),
+        )
+        .init();
+    let args = Args::parse();
+
+    let (config, run_id, resume) = match &args.resume {
+        Some(run) => {
+            let runs_dir = runs_dir_of(&args)?;
+            let checkpoint = checkpoint::load(&runs_dir.join(run).join("checkpoints"))
+                .with_context(|| format!("resuming run `{run}`"))?;
+            let config = TrainConfig::from_json(&checkpoint.meta.config, "the checkpoint's config", &args.overrides)?;
+            (config, run.clone(), Some(checkpoint))
+        }
+        None => {
+            let config = TrainConfig::load(&args.config, &args.overrides)?;
+            let run_id = args.run.clone().unwrap_or_else(default_run_id);
+            (config, run_id, None)
+        }
+    };
+    let run_dir = Path::new(&config.learner.runs_dir).join(&run_id);
+    if resume.is_none() && run_dir.join("checkpoints").exists() {
+        bail!(
+            "run `{run_id}` already has checkpoints in {}: use --resume {run_id}, or another --run",
+            run_dir.display()
+        );
+    }
+    let zenoh_overrides = args
+        .zenoh
+        .iter()
+        .map(|pair| {
+            pair.split_once('=')
+                .map(|(k, v)| (k.trim().to_string(), v.trim().to_string()))
+                .with_context(|| format!("--zenoh {pair:?}: expected KEY=JSON5"))
+        })
+        .collect::<anyhow::Result<Vec<_>>>()?;
+
+    let stop = Arc::new(AtomicBool::new(false));
+    let runtime = tokio::runtime::Builder::new_multi_thread()
+        .worker_threads(1)
+        .enable_all()
+        .build()
+        .context("starting the async runtime")?;
+    let local_endpoint = local_endpoint(&config.learner.listen[0])?;
+    let mut children = Vec::new();
+    if args.actors > 0 {
+        let actor_bin = match &args.actor_bin {
+            Some(path) => path.clone(),
+            None => std::env::current_exe()?.with_file_name("actor"),
+        };
+        for id in 0..args.actors {
+            children.push(spawn_actor(&actor_bin, &local_endpoint, id, &run_id)?);
+        }
+        info!(count = args.actors, endpoint = %local_endpoint, "started local actors");
+    }
+    let options = ServiceOptions { config, run_id: run_id.clone(), run_dir: run_dir.clone(), resume, zenoh_overrides };
+    let outcome = runtime.block_on(async {
+        tokio::spawn(crawler_actor::node::stop_on_signal(Arc::clone(&stop)));
+        service::run(options, Arc::clone(&stop)).await
+    });
+    stop.store(true, Ordering::SeqCst);
+    reap(children);
+    let outcome = outcome?;
+    info!(
+        run = %run_id,
+        updates = outcome.progress.updates,
+        env_steps = outcome.progress.env_steps,
+        "done; checkpoint {}",
+        outcome.last_checkpoint.map(|p| p.display().to_string()).unwrap_or_default()
+    );
+    Ok(())
+}
+
+fn runs_dir_of(args: &Args) -> anyhow::Result<PathBuf> {
+    // The runs directory comes from the preset (and overrides), as for a new run.
+    let config = TrainConfig::load(&args.config, &args.overrides)
+        .or_else(|_| TrainConfig::from_toml("", "defaults", &args.overrides))?;
+    Ok(PathBuf::from(config.learner.runs_dir))
+}
+
+fn default_run_id() -> String {
+    let seconds = std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).map_or(0, |d| d.as_secs());
+    format!("run-{seconds}")
+}
+
+/// Where local actors reach a router listening on `listen` (e.g. tcp/0.0.0.0:7447).
+fn local_endpoint(listen: &str) -> anyhow::Result<String> {
+    let (protocol, address) =
+        listen.split_once('/').with_context(|| format!("learner.listen `{listen}` is not PROTOCOL/HOST:PORT"))?;
+    let port = address.rsplit(':').next().and_then(|p| p.parse::<u16>().ok());
+    let port = port.with_context(|| format!("learner.listen `{listen}` has no port"))?;
+    Ok(format!("{protocol}/127.0.0.1:{port}"))
+}
+
+fn spawn_actor(binary: &Path, endpoint: &str, id: usize, run: &str) -> anyhow::Result<Child> {
+    let mut command = Command::new(binary);
+    command.args(["--connect", endpoint, "--id", &id.to_string(), "--run", run]);
+    if std::env::var_os("RUST_LOG").is_none() {
+        // The learner's status line reports actors; their own logs stay quiet unless asked.
+        command.env("RUST_LOG", "warn");
+    }
+    command.spawn().with_context(|| {
+        format!("starting actor {id} from {} (build it with `cargo build --release`)", binary.display())
+    })
+}
+
+/// Waits up to 10 s for local actors to exit after the learner's stop message, then kills
+/// the rest.
+fn reap(mut children: Vec<Child>) {
+    let deadline = Instant::now() + Duration::from_secs(10);
+    while Instant::now() < deadline && children.iter_mut().any(|c| matches!(c.try_wait(), Ok(None))) {
+        std::thread::sleep(Duration::from_millis(100));
+    }
+    for mut child in children {
+        if matches!(child.try_wait(), Ok(None)) {
+            warn!(pid = child.id(), "actor did not exit; killing it");
+            let _ = child.kill();
+            let _ = child.wait();
+        }
+    }
+}

@@ -1,0 +1,357 @@
+//! A run's configuration: a TOML preset (see `configs/`) plus `--set key=value` overrides.
+
+use std::path::Path;
+
+use crawler_actor::env::{EnvConfig, OBS_DIM};
+use crawler_actor::policy::NetworkSpec;
+use crawler_actor::settings::{ActorSettings, Exploration};
+use serde::{Deserialize, Serialize};
+
+use crate::dqn::{DqnConfig, LossKind, TargetUpdate};
+use crate::rate::RateConfig;
+use crate::replay::ReplayConfig;
+
+#[derive(Debug, thiserror::Error)]
+pub enum ConfigError {
+    #[error("cannot read config file {path}: {source}")]
+    Read { path: String, source: std::io::Error },
+    #[error("config {origin} is not valid: {message}")]
+    Parse { origin: String, message: String },
+    #[error("override `{0}` is not KEY=VALUE (e.g. dqn.lr=1e-3)")]
+    Override(String),
+    #[error("{key} = {value} is invalid: {allowed}")]
+    Invalid { key: String, value: String, allowed: String },
+}
+
+/// Hidden layers of the Q-network; its input and output sizes follow from the environment.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct NetworkSection {
+    pub hidden: Vec<usize>,
+    pub layer_norm: bool,
+}
+
+impl Default for NetworkSection {
+    fn default() -> Self {
+        Self { hidden: vec![512, 256, 128], layer_norm: true }
+    }
+}
+
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct DqnSection {
+    pub gamma: f64,
+    pub lr: f64,
+    pub adam_eps: f64,
+    pub double: bool,
+    pub loss: LossKind,
+    pub max_grad_norm: Option<f64>,
+    pub target_update: TargetUpdate,
+    pub batch_size: usize,
+    pub seed: u64,
+}
+
+impl Default for DqnSection {
+    fn default() -> Self {
+        let dqn = DqnConfig::default();
+        Self {
+            gamma: dqn.gamma,
+            lr: dqn.lr,
+            adam_eps: dqn.adam_eps,
+            double: dqn.double,
+            loss: dqn.loss,
+            max_grad_norm: dqn.max_grad_norm,
+            target_update: dqn.target_update,
+            batch_size: 32,
+            seed: 0,
+        }
+    }
+}
+
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct ActorSection {
+    pub envs_per_actor: usize,
+    pub batch_transitions: usize,
+    pub seed: u64,
+    pub status_interval_s: f64,
+}
+
+impl Default for ActorSection {
+    fn default() -> Self {
+        let settings = ActorSettings::default();
+        Self {
+            envs_per_actor: settings.envs_per_actor,
+            batch_transitions: settings.batch_transitions,
+            seed: settings.seed,
+            status_interval_s: settings.status_interval_s,
+        }
+    }
+}
+
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct LearnerSection {
+    /// libtorch intra-op threads.
+    pub threads: usize,
+    /// zenoh endpoints the embedded router listens on.
+    pub listen: Vec<String>,
+    /// Publish weights every this many updates.
+    pub weights_every: u64,
+    /// Write a checkpoint every this many updates (0: only at the end).
+    pub checkpoint_every: u64,
+    pub keep_checkpoints: usize,
+    /// Also snapshot the replay buffer in the final checkpoint.
+    pub snapshot_replay: bool,
+    /// Seconds between status lines.
+    pub status_every_s: f64,
+    /// Stop after this many updates / seconds / environment steps (0: no limit).
+    pub max_updates: u64,
+    pub max_seconds: f64,
+    pub max_env_steps: u64,
+    /// Transition batches queued between the network and training before new ones are dropped.
+    pub ingest_queue: usize,
+    /// Directory that holds one directory per run.
+    pub runs_dir: String,
+}
+
+impl Default for LearnerSection {
+    fn default() -> Self {
+        Self {
+            threads: 1,
+            listen: vec!["tcp/0.0.0.0:7447".into()],
+            weights_every: 50,
+            checkpoint_every: 5_000,
+            keep_checkpoints: 3,
+            snapshot_replay: true,
+            status_every_s: 5.0,
+            max_updates: 0,
+            max_seconds: 0.0,
+            max_env_steps: 0,
+            ingest_queue: 256,
+            runs_dir: "runs".into(),
+        }
+    }
+}
+
+/// Everything a training run is configured by.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, Default)]
+#[serde(default, deny_unknown_fields)]
+pub struct TrainConfig {
+    pub env: EnvConfig,
+    pub network: NetworkSection,
+    pub dqn: DqnSection,
+    pub replay: ReplayConfig,
+    pub rate: RateConfig,
+    pub exploration: Exploration,
+    pub actor: ActorSection,
+    pub learner: LearnerSection,
+}
+
+impl Default for RateConfig {
+    fn default() -> Self {
+        Self { samples_per_insert: 8.0, warmup: 10_000, error_buffer: 256.0 }
+    }
+}
+
+impl TrainConfig {
+    /// Reads a TOML preset and applies `overrides` (`section.key=value`, value in TOML syntax;
+    /// a bare word is taken as a string).
+    pub fn load(path: &Path, overrides: &[String]) -> Result<Self, ConfigError> {
+        let text = std::fs::read_to_string(path)
+            .map_err(|source| ConfigError::Read { path: path.display().to_string(), source })?;
+        Self::from_toml(&text, &path.display().to_string(), overrides)
+    }
+
+    pub fn from_toml(text: &str, origin: &str, overrides: &[String]) -> Result<Self, ConfigError> {
+        let value: toml::Table = toml::from_str(text)
+            .map_err(|e| ConfigError::Parse { origin: origin.to_string(), message: e.to_string() })?;
+        Self::from_table(value, origin, overrides)
+    }
+
+    /// The config a checkpoint recorded (its `meta.json` `config`), with `overrides` applied.
+    pub fn from_json(json: &serde_json::Value, origin: &str, overrides: &[String]) -> Result<Self, ConfigError> {
+        let parse_error = |message: String| ConfigError::Parse { origin: origin.to_string(), message };
+        let table = toml::Table::try_from(json).map_err(|e| parse_error(e.to_string()))?;
+        Self::from_table(table, origin, overrides)
+    }
+
+    fn from_table(mut value: toml::Table, origin: &str, overrides: &[String]) -> Result<Self, ConfigError> {
+        let parse_error = |message: String| ConfigError::Parse { origin: origin.to_string(), message };
+        for assignment in overrides {
+            let (key, raw) = assignment.split_once('=').ok_or_else(|| ConfigError::Override(assignment.clone()))?;
+            let parsed = toml::from_str::<toml::Table>(&format!("v = {raw}"))
+                .ok()
+                .and_then(|mut t| t.remove("v"))
+                .unwrap_or_else(|| toml::Value::String(raw.to_string()));
+            set_path(&mut value, key.trim(), parsed).map_err(|_| ConfigError::Override(assignment.clone()))?;
+        }
+        let config: TrainConfig =
+            toml::Value::Table(value).try_into().map_err(|e: toml::de::Error| parse_error(e.to_string()))?;
+        config.validate()?;
+        Ok(config)
+    }
+
+    /// Checks every value against its allowed range; the error names the key.
+    pub fn validate(&self) -> Result<(), ConfigError> {
+        let invalid = |key: &str, value: String, allowed: &str| ConfigError::Invalid {
+            key: key.to_string(),
+            value,
+            allowed: allowed.to_string(),
+        };
+        self.env.validate().map_err(|e| invalid(&format!("env.{}", e.key), e.value, e.allowed))?;
+        self.actor_settings().validate().map_err(|e| invalid("actor", String::new(), &e))?;
+        let d = &self.dqn;
+        if !(d.gamma > 0.0 && d.gamma <= 1.0) {
+            return Err(invalid("dqn.gamma", d.gamma.to_string(), "a number in (0, 1]"));
+        }
+        if !(d.lr.is_finite() && d.lr > 0.0 && d.lr < 1.0) {
+            return Err(invalid("dqn.lr", d.lr.to_string(), "a number in (0, 1)"));
+        }
+        if !(1..=8192).contains(&d.batch_size) {
+            return Err(invalid("dqn.batch_size", d.batch_size.to_string(), "an integer in 1..=8192"));
+        }
+        if let Some(norm) = d.max_grad_norm
+            && !(norm.is_finite() && norm > 0.0)
+        {
+            return Err(invalid("dqn.max_grad_norm", norm.to_string(), "a positive number"));
+        }
+        match d.target_update {
+            TargetUpdate::Hard { every } if every == 0 => {
+                return Err(invalid("dqn.target_update.every", "0".into(), "at least 1"));
+            }
+            TargetUpdate::Polyak { tau } if !(tau > 0.0 && tau <= 1.0) => {
+                return Err(invalid("dqn.target_update.tau", tau.to_string(), "a number in (0, 1]"));
+            }
+            _ => {}
+        }
+        self.network_spec()
+            .validate()
+            .map_err(|e| invalid("network.hidden", format!("{:?}", self.network.hidden), &e))?;
+        if self.replay.capacity < 2 * d.batch_size {
+            return Err(invalid("replay.capacity", self.replay.capacity.to_string(), "at least twice dqn.batch_size"));
+        }
+        if !(1..=100).contains(&self.replay.n_step) {
+            return Err(invalid("replay.n_step", self.replay.n_step.to_string(), "an integer in 1..=100"));
+        }
+        if let Some(per) = self.replay.prioritized
+            && !((0.0..=1.0).contains(&per.alpha) && (0.0..=1.0).contains(&per.beta_start) && per.epsilon >= 0.0)
+        {
+            return Err(invalid(
+                "replay.prioritized",
+                format!("{per:?}"),
+                "alpha and beta_start in [0, 1], epsilon ≥ 0",
+            ));
+        }
+        let r = &self.rate;
+        if !(r.samples_per_insert.is_finite() && r.samples_per_insert >= 0.0) {
+            return Err(invalid(
+                "rate.samples_per_insert",
+                r.samples_per_insert.to_string(),
+                "a number ≥ 0 (0: no limit)",
+            ));
+        }
+        if r.warmup < d.batch_size || r.warmup > self.replay.capacity {
+            return Err(invalid("rate.warmup", r.warmup.to_string(), "between dqn.batch_size and replay.capacity"));
+        }
+        let l = &self.learner;
+        if !(1..=64).contains(&l.threads) {
+            return Err(invalid("learner.threads", l.threads.to_string(), "an integer in 1..=64"));
+        }
+        if l.listen.is_empty() {
+            return Err(invalid(
+                "learner.listen",
+                "[]".into(),
+                "at least one zenoh endpoint, e.g. \"tcp/0.0.0.0:7447\"",
+            ));
+        }
+        if l.weights_every == 0 {
+            return Err(invalid("learner.weights_every", "0".into(), "at least 1"));
+        }
+        if l.keep_checkpoints == 0 {
+            return Err(invalid("learner.keep_checkpoints", "0".into(), "at least 1"));
+        }
+        if !(l.status_every_s.is_finite() && l.status_every_s > 0.0) {
+            return Err(invalid("learner.status_every_s", l.status_every_s.to_string(), "a positive number"));
+        }
+        if !(1..=65_536).contains(&l.ingest_queue) {
+            return Err(invalid("learner.ingest_queue", l.ingest_queue.to_string(), "an integer in 1..=65536"));
+        }
+        Ok(())
+    }
+
+    pub fn network_spec(&self) -> NetworkSpec {
+        NetworkSpec {
+            obs_dim: OBS_DIM,
+            hidden: self.network.hidden.clone(),
+            num_actions: self.env.num_actions(),
+            layer_norm: self.network.layer_norm,
+        }
+    }
+
+    pub fn dqn_config(&self) -> DqnConfig {
+        let d = &self.dqn;
+        DqnConfig {
+            network: self.network_spec(),
+            gamma: d.gamma,
+            lr: d.lr,
+            adam_eps: d.adam_eps,
+            double: d.double,
+            loss: d.loss,
+            max_grad_norm: d.max_grad_norm,
+            target_update: d.target_update,
+            seed: d.seed,
+        }
+    }
+
+    pub fn actor_settings(&self) -> ActorSettings {
+        ActorSettings {
+            env: self.env.clone(),
+            envs_per_actor: self.actor.envs_per_actor,
+            batch_transitions: self.actor.batch_transitions,
+            exploration: self.exploration.clone(),
+            seed: self.actor.seed,
+            status_interval_s: self.actor.status_interval_s,
+        }
+    }
+}
+
+fn set_path(table: &mut toml::Table, path: &str, value: toml::Value) -> Result<(), ()> {
+    let mut parts: Vec<&str> = path.split('.').collect();
+    let last = parts.pop().filter(|p| !p.is_empty()).ok_or(())?;
+    let mut current = table;
+    for part in parts {
+        let entry = current.entry(part.to_string()).or_insert_with(|| toml::Value::Table(toml::Table::new()));
+        current = entry.as_table_mut().ok_or(())?;
+    }
+    current.insert(last.to_string(), value);
+    Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn overrides_apply_and_bad_values_name_their_key() {
+        let config = TrainConfig::from_toml(
+            "[dqn]\nlr = 1e-3\n",
+            "test",
+            &["dqn.batch_size=64".into(), "env.direction=backward".into()],
+        )
+        .unwrap();
+        assert_eq!(config.dqn.lr, 1e-3);
+        assert_eq!(config.dqn.batch_size, 64);
+        assert_eq!(config.env.direction, crawler_actor::env::Direction::Backward);
+
+        let err = TrainConfig::from_toml("", "test", &["dqn.lr=2".into()]).unwrap_err().to_string();
+        assert!(err.contains("dqn.lr") && err.contains("(0, 1)"), "{err}");
+        let err = TrainConfig::from_toml("", "test", &["env.action_levels=1".into()]).unwrap_err().to_string();
+        assert!(err.contains("env.action_levels"), "{err}");
+        let err = TrainConfig::from_toml("[dqn]\nlrr = 1\n", "test", &[]).unwrap_err().to_string();
+        assert!(err.contains("lrr"), "{err}");
+        assert!(matches!(TrainConfig::from_toml("", "t", &["nonsense".into()]), Err(ConfigError::Override(_))));
+        let missing = TrainConfig::load(Path::new("/no/such/config.toml"), &[]).unwrap_err().to_string();
+        assert!(missing.contains("/no/such/config.toml"), "{missing}");
+    }
+}

@@ -1,0 +1,583 @@
+//! The learner process: an embedded zenoh router, ingest, the training thread, and weights.
+//!
+//! Data path: zenoh delivers transition batches to a callback that validates them and hands
+//! them to the training thread through a bounded queue; when the queue is full the batch is
+//! dropped and counted, so zenoh's receive path never waits on training (a reliably published
+//! message that waits more than 5 s makes zenoh close the sender's link). The training thread
+//! inserts, samples and updates; every `weights_every` updates it hands fresh weights to a
+//! publisher that never blocks (congestion control Drop: a frozen actor cannot stall the
+//! learner) and to a queryable that serves the latest weights to starting actors.
+
+use std::collections::{BTreeMap, BTreeSet};
+use std::path::{Path, PathBuf};
+use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
+use std::sync::mpsc::{Receiver, RecvTimeoutError, SyncSender, TrySendError, sync_channel};
+use std::sync::{Arc, Mutex, PoisonError};
+use std::time::{Duration, Instant};
+
+use crawler_proto::{self as proto, PROTOCOL_VERSION, SequenceTracker, TransitionLimits, keys};
+use prost::Message;
+use rand::SeedableRng;
+use rand_chacha::ChaCha8Rng;
+use serde::Serialize;
+use tch::Tensor;
+use tracing::{debug, info, warn};
+use zenoh::Wait;
+use zenoh::qos::CongestionControl;
+use zenoh::sample::SampleKind;
+
+use crate::checkpoint::{self, Checkpoint, CheckpointError, Progress};
+use crate::config::TrainConfig;
+use crate::dqn::{Batch, Dqn};
+use crate::rate::RateLimiter;
+use crate::replay::{Replay, SampledBatch, StreamId, Transition};
+
+#[derive(Debug, thiserror::Error)]
+pub enum ServiceError {
+    #[error("zenoh: {context}: {message}")]
+    Zenoh { context: String, message: String },
+    #[error(transparent)]
+    Checkpoint(#[from] CheckpointError),
+    #[error("{0}")]
+    Setup(String),
+}
+
+fn zenoh_error(context: impl Into<String>) -> impl FnOnce(zenoh::Error) -> ServiceError {
+    let context = context.into();
+    move |e| ServiceError::Zenoh { context, message: e.to_string() }
+}
+
+/// What to run.
+#[derive(Debug)]
+pub struct ServiceOptions {
+    pub config: TrainConfig,
+    pub run_id: String,
+    /// `runs_dir/run_id`: checkpoints and status live here.
+    pub run_dir: PathBuf,
+    /// A checkpoint to continue from (same run).
+    pub resume: Option<Checkpoint>,
+    /// Extra zenoh settings as (key, JSON5) pairs, applied last (TLS, access control).
+    pub zenoh_overrides: Vec<(String, String)>,
+}
+
+/// Per-actor view, from its transitions and status reports.
+#[derive(Debug, Clone, Default, Serialize)]
+pub struct ActorView {
+    pub transitions: u64,
+    pub batches: u64,
+    pub weights_version: u64,
+    pub env_steps: u64,
+    pub env_steps_per_second: f32,
+    pub epsilon: f64,
+    pub episodes: u64,
+    /// Exponential moving average of episode speed (m/s), distance and return.
+    pub speed_ema: f32,
+    pub distance_ema: f32,
+    pub return_ema: f32,
+    pub gaps: u64,
+}
+
+/// State shared between zenoh callbacks, the training thread and status reports.
+#[derive(Debug, Default)]
+struct Shared {
+    actors: Mutex<BTreeMap<u32, ActorView>>,
+    connected: Mutex<BTreeSet<u32>>,
+    rejected: Mutex<BTreeMap<&'static str, u64>>,
+    latest_weights: Mutex<Vec<u8>>,
+    dropped_batches: AtomicU64,
+    evaluation: Mutex<Option<proto::EpisodeStats>>,
+}
+
+fn lock<T>(mutex: &Mutex<T>) -> std::sync::MutexGuard<'_, T> {
+    mutex.lock().unwrap_or_else(PoisonError::into_inner)
+}
+
+/// The status file written every `status_every_s`, for people and tests.
+#[derive(Debug, Clone, Serialize)]
+pub struct Status {
+    pub run_id: String,
+    pub elapsed_s: f64,
+    pub updates: u64,
+    pub updates_per_second: f64,
+    pub env_steps: u64,
+    pub env_steps_per_second: f64,
+    pub physics_steps: u64,
+    pub replay_len: usize,
+    pub weights_version: u64,
+    pub loss: f64,
+    pub mean_q: f64,
+    pub connected_actors: Vec<u32>,
+    pub actors: BTreeMap<u32, ActorView>,
+    pub rejected: BTreeMap<&'static str, u64>,
+    pub dropped_batches: u64,
+    pub last_checkpoint: Option<String>,
+    pub last_evaluation_speed: Option<f32>,
+}
+
+/// How a run ended.
+#[derive(Debug, Clone)]
+pub struct Outcome {
+    pub progress: Progress,
+    pub last_checkpoint: Option<PathBuf>,
+}
+
+/// Opens the router, serves the run, trains until `stop` or a configured limit.
+pub async fn run(options: ServiceOptions, stop: Arc<AtomicBool>) -> Result<Outcome, ServiceError> {
+    let ServiceOptions { config, run_id, run_dir, resume, zenoh_overrides } = options;
+    keys::check_run_id(&run_id).map_err(|e| ServiceError::Setup(e.to_string()))?;
+    std::fs::create_dir_all(&run_dir)
+        .map_err(|e| ServiceError::Setup(format!("cannot create {}: {e}", run_dir.display())))?;
+    crate::set_torch_threads(config.learner.threads);
+    crate::tune_allocator();
+
+    let mut zenoh_config = zenoh::Config::default();
+    let listen = crawler_actor::node::serde_json_list(&config.learner.listen);
+    let base = [
+        ("mode".to_string(), "\"router\"".to_string()),
+        ("listen/endpoints".to_string(), listen),
+        ("scouting/multicast/enabled".to_string(), "false".to_string()),
+    ];
+    for (key, value) in base.into_iter().chain(zenoh_overrides) {
+        zenoh_config.insert_json5(&key, &value).map_err(zenoh_error(format!("setting {key} = {value}")))?;
+    }
+    let session = zenoh::open(zenoh_config).await.map_err(zenoh_error("opening the router"))?;
+    info!(run = %run_id, listen = ?config.learner.listen, "learner router up");
+
+    let shared = Arc::new(Shared::default());
+    let run_info = proto::RunInfo {
+        protocol_version: PROTOCOL_VERSION,
+        run_id: run_id.clone(),
+        actor_settings_json: serde_json::to_string(&config.actor_settings())
+            .map_err(|e| ServiceError::Setup(e.to_string()))?,
+    }
+    .encode_to_vec();
+    let info_key = keys::info(&run_id);
+    let reply_key = info_key.clone();
+    let _info_queryable = session
+        .declare_queryable(&info_key)
+        .callback(move |query| {
+            let _ = query.reply(&reply_key, run_info.clone()).wait();
+        })
+        .await
+        .map_err(zenoh_error("declaring the run-info queryable"))?;
+    let weights_key = keys::weights(&run_id);
+    let weights_shared = Arc::clone(&shared);
+    let served_key = weights_key.clone();
+    let _weights_queryable = session
+        .declare_queryable(&weights_key)
+        .callback(move |query| {
+            let latest = lock(&weights_shared.latest_weights).clone();
+            if !latest.is_empty() {
+                let _ = query.reply(&served_key, latest).wait();
+            }
+        })
+        .await
+        .map_err(zenoh_error("declaring the weights queryable"))?;
+    let weights_publisher = session
+        .declare_publisher(&weights_key)
+        .congestion_control(CongestionControl::Drop)
+        .await
+        .map_err(zenoh_error("declaring the weights publisher"))?;
+    let _token = session
+        .liveliness()
+        .declare_token(keys::alive_learner(&run_id))
+        .await
+        .map_err(zenoh_error("declaring liveliness"))?;
+
+    // Ingest: validate in the callback, queue (bounded) for the training thread.
+    let (ingest_tx, ingest_rx) = sync_channel::<proto::TransitionBatch>(config.learner.ingest_queue);
+    let limits = TransitionLimits {
+        run_id: run_id.clone(),
+        obs_dim: crawler_actor::env::OBS_DIM as u32,
+        num_actions: config.env.num_actions() as u32,
+        max_batch: 4096,
+    };
+    let _transitions = session
+        .declare_subscriber(keys::all_transitions(&run_id))
+        .callback(ingest_callback(limits, ingest_tx, Arc::clone(&shared)))
+        .await
+        .map_err(zenoh_error("subscribing to transitions"))?;
+    let stats_shared = Arc::clone(&shared);
+    let stats_run = run_id.clone();
+    let _stats = session
+        .declare_subscriber(keys::all_stats(&run_id))
+        .callback(move |sample| match proto::validate::episode_stats(&sample.payload().to_bytes(), &stats_run) {
+            Ok(stats) => record_episode(&stats_shared, &stats),
+            Err(e) => count_rejection(&stats_shared, &e),
+        })
+        .await
+        .map_err(zenoh_error("subscribing to stats"))?;
+    let status_shared = Arc::clone(&shared);
+    let status_run = run_id.clone();
+    let _status = session
+        .declare_subscriber(keys::all_status(&run_id))
+        .callback(move |sample| match proto::validate::actor_status(&sample.payload().to_bytes(), &status_run) {
+            Ok(report) if !report.evaluator => {
+                let mut actors = lock(&status_shared.actors);
+                let view = actors.entry(report.actor_id).or_default();
+                view.weights_version = report.weights_version;
+                view.env_steps = report.env_steps;
+                view.env_steps_per_second = report.env_steps_per_second;
+                view.epsilon = report.epsilon;
+            }
+            Ok(_) => {}
+            Err(e) => count_rejection(&status_shared, &e),
+        })
+        .await
+        .map_err(zenoh_error("subscribing to status"))?;
+    let alive_shared = Arc::clone(&shared);
+    let _alive = session
+        .liveliness()
+        .declare_subscriber(keys::all_alive_actors(&run_id))
+        .history(true)
+        .callback(move |sample| {
+            let Some(id) = keys::trailing_id(sample.key_expr().as_str()) else { return };
+            let mut connected = lock(&alive_shared.connected);
+            match sample.kind() {
+                SampleKind::Put => {
+                    info!(actor = id, "actor connected");
+                    connected.insert(id);
+                }
+                SampleKind::Delete => {
+                    info!(actor = id, "actor left");
+                    connected.remove(&id);
+                }
+            }
+        })
+        .await
+        .map_err(zenoh_error("watching actor liveliness"))?;
+
+    // Training runs on its own thread; weights come back through a channel to be published.
+    let (weights_tx, mut weights_rx) = tokio::sync::mpsc::channel::<Vec<u8>>(2);
+    let trainer = {
+        let shared = Arc::clone(&shared);
+        let stop = Arc::clone(&stop);
+        let run_id = run_id.clone();
+        std::thread::Builder::new()
+            .name("training".into())
+            .spawn(move || train(&config, &run_id, &run_dir, resume, &ingest_rx, &weights_tx, &shared, &stop))
+            .map_err(|e| ServiceError::Setup(format!("cannot start the training thread: {e}")))?
+    };
+    while let Some(bytes) = weights_rx.recv().await {
+        if let Err(e) = weights_publisher.put(bytes).await {
+            warn!("weights publish failed: {e}");
+        }
+    }
+    let outcome = trainer.join().map_err(|_| ServiceError::Setup("the training thread panicked".into()))??;
+
+    // Tell every node of the run to exit; repeat briefly so late subscribers hear it too.
+    let control = proto::Control {
+        protocol_version: PROTOCOL_VERSION,
+        run_id: run_id.clone(),
+        command: proto::Command::Stop as i32,
+    }
+    .encode_to_vec();
+    for _ in 0..5 {
+        let _ = session.put(keys::control(&run_id), control.clone()).await;
+        tokio::time::sleep(Duration::from_millis(100)).await;
+    }
+    let _ = session.close().await;
+    Ok(outcome)
+}
+
+fn count_rejection(shared: &Shared, error: &proto::ProtoError) {
+    let count = {
+        let mut rejected = lock(&shared.rejected);
+        let count = rejected.entry(error.kind()).or_default();
+        *count += 1;
+        *count
+    };
+    // Rate-limited: the first few of each kind, then every 1000th.
+    if count <= 3 || count.is_multiple_of(1000) {
+        warn!(kind = error.kind(), count, "rejected message: {error}");
+    }
+}
+
+fn record_episode(shared: &Shared, stats: &proto::EpisodeStats) {
+    if stats.evaluation {
+        info!(speed = stats.speed, distance = stats.distance, weights = stats.weights_version, "evaluation episode");
+        *lock(&shared.evaluation) = Some(stats.clone());
+        return;
+    }
+    let mut actors = lock(&shared.actors);
+    let view = actors.entry(stats.actor_id).or_default();
+    let alpha = if view.episodes == 0 { 1.0 } else { 0.1 };
+    view.episodes += 1;
+    view.speed_ema += alpha * (stats.speed - view.speed_ema);
+    view.distance_ema += alpha * (stats.distance - view.distance_ema);
+    view.return_ema += alpha * (stats.episode_return - view.return_ema);
+    view.epsilon = stats.epsilon;
+    debug!(actor = stats.actor_id, speed = stats.speed, distance = stats.distance, epsilon = stats.epsilon, "episode");
+}
+
+fn ingest_callback(
+    limits: TransitionLimits,
+    queue: SyncSender<proto::TransitionBatch>,
+    shared: Arc<Shared>,
+) -> impl Fn(zenoh::sample::Sample) + Send + Sync + 'static {
+    let sequences = Mutex::new(SequenceTracker::default());
+    move |sample| {
+        let batch = match proto::validate::transition_batch(&sample.payload().to_bytes(), &limits) {
+            Ok(batch) => batch,
+            Err(e) => return count_rejection(&shared, &e),
+        };
+        let check = lock(&sequences).check(batch.actor_id, batch.incarnation, batch.sequence);
+        match check {
+            Err(e) => return count_rejection(&shared, &e),
+            Ok(proto::validate::SequenceCheck::Gap { missing }) => {
+                lock(&shared.actors).entry(batch.actor_id).or_default().gaps += missing;
+            }
+            Ok(_) => {}
+        }
+        match queue.try_send(batch) {
+            Ok(()) => {}
+            Err(TrySendError::Full(_)) => {
+                let dropped = shared.dropped_batches.fetch_add(1, Ordering::Relaxed) + 1;
+                if dropped <= 3 || dropped.is_multiple_of(100) {
+                    warn!(dropped, "ingest queue full: training is behind the actors; dropping a batch");
+                }
+            }
+            Err(TrySendError::Disconnected(_)) => {}
+        }
+    }
+}
+
+/// The training loop. Returns when `stop` is set or a limit is reached, after a final
+/// checkpoint.
+#[allow(clippy::too_many_arguments)]
+fn train(
+    config: &TrainConfig,
+    run_id: &str,
+    run_dir: &Path,
+    resume: Option<Checkpoint>,
+    ingest: &Receiver<proto::TransitionBatch>,
+    weights_out: &tokio::sync::mpsc::Sender<Vec<u8>>,
+    shared: &Shared,
+    stop: &AtomicBool,
+) -> Result<Outcome, ServiceError> {
+    let checkpoint_dir = run_dir.join("checkpoints");
+    let config_json = serde_json::to_value(config).map_err(|e| ServiceError::Setup(e.to_string()))?;
+    let mut dqn = Dqn::new(config.dqn_config());
+    let mut progress = Progress::default();
+    let mut replay = None;
+    if let Some(checkpoint) = &resume {
+        dqn.restore(checkpoint)?;
+        progress = checkpoint.meta.progress.clone();
+        replay = checkpoint::load_replay(checkpoint)?;
+        info!(
+            updates = progress.updates,
+            weights_version = progress.weights_version,
+            replay = replay.as_ref().map_or(0, Replay::len),
+            "resumed from {}",
+            checkpoint.path.display()
+        );
+    }
+    let mut replay = match replay {
+        Some(r) if r.config() == &config.replay => r,
+        _ => Replay::new(config.replay.clone(), crawler_actor::env::OBS_DIM)
+            .map_err(|e| ServiceError::Setup(e.to_string()))?,
+    };
+    let mut rate = RateLimiter::new(config.rate);
+    rate.reset(replay.len());
+    let mut rng = ChaCha8Rng::seed_from_u64(config.dqn.seed ^ progress.updates);
+    let mut sample = SampledBatch::default();
+    let batch_size = config.dqn.batch_size;
+    let session_start = Instant::now();
+    let prior_seconds = progress.train_seconds;
+    let mut last_checkpoint: Option<PathBuf> = None;
+    let mut last_loss = (f64::NAN, f64::NAN);
+    let mut status_clock = Instant::now();
+    let mut status_counts = (progress.updates, progress.env_steps);
+
+    let publish = |dqn: &Dqn, progress: &mut Progress| {
+        progress.weights_version += 1;
+        let message = proto::Weights {
+            protocol_version: PROTOCOL_VERSION,
+            run_id: run_id.to_string(),
+            version: progress.weights_version,
+            learner_step: progress.updates,
+            network: Some(wire_spec(&dqn.config.network)),
+            safetensors: checkpoint::encode_weights(&dqn.online),
+        }
+        .encode_to_vec();
+        *lock(&shared.latest_weights) = message.clone();
+        // Dropped when the publisher is busy: a newer version follows soon.
+        let _ = weights_out.try_send(message);
+    };
+    publish(&dqn, &mut progress);
+
+    let limits_reached = |progress: &Progress, elapsed: f64| {
+        let l = &config.learner;
+        (l.max_updates > 0 && progress.updates >= l.max_updates)
+            || (l.max_seconds > 0.0 && elapsed >= l.max_seconds)
+            || (l.max_env_steps > 0 && progress.env_steps >= l.max_env_steps)
+    };
+    while !stop.load(Ordering::SeqCst) && !limits_reached(&progress, session_start.elapsed().as_secs_f64()) {
+        // Take what has arrived; wait briefly only when there is nothing to train on.
+        let mut received = 0;
+        let wait = if rate.can_sample(batch_size) { Duration::ZERO } else { Duration::from_millis(5) };
+        let mut next = match ingest.recv_timeout(wait) {
+            Ok(batch) => Some(batch),
+            Err(RecvTimeoutError::Timeout) => None,
+            Err(RecvTimeoutError::Disconnected) => break,
+        };
+        while let Some(batch) = next.take() {
+            received += insert_batch(&mut replay, &batch, shared);
+            progress.env_steps += batch.len() as u64;
+            progress.physics_steps += batch.physics_steps;
+            if received < 16 * batch_size.max(256) {
+                next = ingest.try_recv().ok();
+            }
+        }
+        rate.record_insert(received, replay.len());
+
+        if rate.can_sample(batch_size) && replay.len() >= batch_size {
+            let beta = config.replay.prioritized.map_or(0.0, |p| p.beta(progress.updates));
+            if replay.sample(batch_size, config.dqn.gamma, beta, &mut rng, &mut sample).is_ok() {
+                let stats = dqn.update(&to_batch(&sample, batch_size, config.replay.prioritized.is_some()));
+                replay.update_priorities(&sample.keys, &stats.td_errors);
+                rate.record_sample(batch_size);
+                progress.updates += 1;
+                last_loss = (stats.loss, stats.mean_q);
+                if !stats.loss.is_finite() {
+                    warn!(updates = progress.updates, "non-finite loss");
+                }
+                if progress.updates.is_multiple_of(config.learner.weights_every) {
+                    publish(&dqn, &mut progress);
+                }
+                let every = config.learner.checkpoint_every;
+                if every > 0 && progress.updates.is_multiple_of(every) {
+                    progress.train_seconds = prior_seconds + session_start.elapsed().as_secs_f64();
+                    progress.epsilon = mean_epsilon(shared);
+                    let path = checkpoint::save(
+                        &checkpoint_dir,
+                        &dqn,
+                        run_id,
+                        &progress,
+                        &config_json,
+                        None,
+                        config.learner.keep_checkpoints,
+                    )?;
+                    last_checkpoint = Some(path);
+                }
+            }
+        }
+
+        if status_clock.elapsed().as_secs_f64() >= config.learner.status_every_s {
+            let seconds = status_clock.elapsed().as_secs_f64();
+            let status = Status {
+                run_id: run_id.to_string(),
+                elapsed_s: prior_seconds + session_start.elapsed().as_secs_f64(),
+                updates: progress.updates,
+                updates_per_second: (progress.updates - status_counts.0) as f64 / seconds,
+                env_steps: progress.env_steps,
+                env_steps_per_second: (progress.env_steps - status_counts.1) as f64 / seconds,
+                physics_steps: progress.physics_steps,
+                replay_len: replay.len(),
+                weights_version: progress.weights_version,
+                loss: last_loss.0,
+                mean_q: last_loss.1,
+                connected_actors: lock(&shared.connected).iter().copied().collect(),
+                actors: lock(&shared.actors).clone(),
+                rejected: lock(&shared.rejected).clone(),
+                dropped_batches: shared.dropped_batches.load(Ordering::Relaxed),
+                last_checkpoint: last_checkpoint.as_ref().map(|p| p.display().to_string()),
+                last_evaluation_speed: lock(&shared.evaluation).as_ref().map(|e| e.speed),
+            };
+            report(&status, run_dir);
+            status_clock = Instant::now();
+            status_counts = (progress.updates, progress.env_steps);
+        }
+    }
+
+    progress.train_seconds = prior_seconds + session_start.elapsed().as_secs_f64();
+    progress.epsilon = mean_epsilon(shared);
+    let snapshot = config.learner.snapshot_replay.then_some(&replay);
+    let path = checkpoint::save(
+        &checkpoint_dir,
+        &dqn,
+        run_id,
+        &progress,
+        &config_json,
+        snapshot,
+        config.learner.keep_checkpoints,
+    )?;
+    info!(updates = progress.updates, env_steps = progress.env_steps, "final checkpoint {}", path.display());
+    Ok(Outcome { progress, last_checkpoint: Some(path) })
+}
+
+fn mean_epsilon(shared: &Shared) -> f64 {
+    let actors = lock(&shared.actors);
+    if actors.is_empty() { 0.0 } else { actors.values().map(|a| a.epsilon).sum::<f64>() / actors.len() as f64 }
+}
+
+fn insert_batch(replay: &mut Replay, batch: &proto::TransitionBatch, shared: &Shared) -> usize {
+    let dim = batch.obs_dim as usize;
+    let mut inserted = 0;
+    for i in 0..batch.len() {
+        let transition = Transition {
+            observation: &batch.observations[i * dim..(i + 1) * dim],
+            // Validated against the action count, which is at most 15² = 225.
+            action: u8::try_from(batch.actions[i]).unwrap_or(u8::MAX),
+            reward: batch.rewards[i],
+            next_observation: &batch.next_observations[i * dim..(i + 1) * dim],
+            terminated: batch.terminated[i],
+            truncated: batch.truncated[i],
+        };
+        let stream = StreamId { actor: batch.actor_id, env: batch.env_ids[i] };
+        if replay.insert(stream, &transition).is_ok() {
+            inserted += 1;
+        }
+    }
+    let mut actors = lock(&shared.actors);
+    let view = actors.entry(batch.actor_id).or_default();
+    view.transitions += inserted as u64;
+    view.batches += 1;
+    inserted
+}
+
+fn to_batch(sample: &SampledBatch, batch: usize, weighted: bool) -> Batch {
+    let rows = batch as i64;
+    let dim = (sample.observations.len() / batch.max(1)) as i64;
+    Batch {
+        observations: Tensor::from_slice(&sample.observations).view([rows, dim]),
+        actions: Tensor::from_slice(&sample.actions),
+        returns: Tensor::from_slice(&sample.returns),
+        next_observations: Tensor::from_slice(&sample.next_observations).view([rows, dim]),
+        discounts: Tensor::from_slice(&sample.discounts),
+        weights: weighted.then(|| Tensor::from_slice(&sample.weights)),
+    }
+}
+
+fn wire_spec(spec: &crawler_actor::policy::NetworkSpec) -> proto::NetworkSpec {
+    proto::NetworkSpec {
+        obs_dim: spec.obs_dim as u32,
+        hidden: spec.hidden.iter().map(|&h| h as u32).collect(),
+        num_actions: spec.num_actions as u32,
+        layer_norm: spec.layer_norm,
+    }
+}
+
+/// Logs a status line and rewrites `status.json` atomically.
+fn report(status: &Status, run_dir: &Path) {
+    let speeds: Vec<String> = status.actors.iter().map(|(id, a)| format!("{id}:{:.2}", a.speed_ema)).collect();
+    info!(
+        "updates {} ({:.0}/s) | env steps {} ({:.0}/s) | replay {} | weights v{} | loss {:.4} | actors {:?} | speed m/s {}",
+        status.updates,
+        status.updates_per_second,
+        status.env_steps,
+        status.env_steps_per_second,
+        status.replay_len,
+        status.weights_version,
+        status.loss,
+        status.connected_actors,
+        speeds.join(" ")
+    );
+    let path = run_dir.join("status.json");
+    let temp = run_dir.join("status.json.tmp");
+    if let Ok(json) = serde_json::to_vec_pretty(status)
+        && std::fs::write(&temp, json).is_ok()
+    {
+        let _ = std::fs::rename(&temp, &path);
+    }
+}

@@ -1,0 +1,104 @@
+//! zenoh key expressions. Everything of run `<run>` lives under `crawler/<run>/`.
+//!
+//! | key                               | who puts        | what                      |
+//! |-----------------------------------|-----------------|---------------------------|
+//! | `crawler/<run>/transitions/<id>`  | actor `<id>`    | [`crate::TransitionBatch`]|
+//! | `crawler/<run>/stats/<id>`        | actor/evaluator | [`crate::EpisodeStats`]   |
+//! | `crawler/<run>/status/<id>`       | actor/evaluator | [`crate::ActorStatus`]    |
+//! | `crawler/<run>/weights`           | learner only    | [`crate::Weights`] (also a queryable) |
+//! | `crawler/<run>/info`              | learner (queryable) | [`crate::RunInfo`]    |
+//! | `crawler/<run>/control`           | learner only    | [`crate::Control`]        |
+//! | `crawler/<run>/alive/actor/<id>`  | liveliness token of actor `<id>` |          |
+//! | `crawler/<run>/alive/learner`     | liveliness token of the learner  |          |
+
+use crate::ProtoError;
+
+pub const ROOT: &str = "crawler";
+
+/// Checks a run id: 1–64 characters of `[A-Za-z0-9_-]`, so it is one key-expression chunk.
+pub fn check_run_id(run: &str) -> Result<(), ProtoError> {
+    let ok =
+        !run.is_empty() && run.len() <= 64 && run.chars().all(|c| c.is_ascii_alphanumeric() || c == '-' || c == '_');
+    if ok { Ok(()) } else { Err(ProtoError::BadRunId(run.to_string())) }
+}
+
+pub fn transitions(run: &str, actor: u32) -> String {
+    format!("{ROOT}/{run}/transitions/{actor}")
+}
+
+pub fn all_transitions(run: &str) -> String {
+    format!("{ROOT}/{run}/transitions/*")
+}
+
+pub fn stats(run: &str, actor: u32) -> String {
+    format!("{ROOT}/{run}/stats/{actor}")
+}
+
+pub fn all_stats(run: &str) -> String {
+    format!("{ROOT}/{run}/stats/*")
+}
+
+pub fn status(run: &str, actor: u32) -> String {
+    format!("{ROOT}/{run}/status/{actor}")
+}
+
+pub fn all_status(run: &str) -> String {
+    format!("{ROOT}/{run}/status/*")
+}
+
+pub fn weights(run: &str) -> String {
+    format!("{ROOT}/{run}/weights")
+}
+
+/// Weights of any run: what an actor that was not told its run asks for.
+pub fn any_weights() -> String {
+    format!("{ROOT}/*/weights")
+}
+
+pub fn info(run: &str) -> String {
+    format!("{ROOT}/{run}/info")
+}
+
+pub fn control(run: &str) -> String {
+    format!("{ROOT}/{run}/control")
+}
+
+pub fn alive_actor(run: &str, actor: u32) -> String {
+    format!("{ROOT}/{run}/alive/actor/{actor}")
+}
+
+pub fn all_alive_actors(run: &str) -> String {
+    format!("{ROOT}/{run}/alive/actor/*")
+}
+
+pub fn alive_learner(run: &str) -> String {
+    format!("{ROOT}/{run}/alive/learner")
+}
+
+/// The run id in a key under `crawler/<run>/…`.
+pub fn run_of(key: &str) -> Option<&str> {
+    let mut parts = key.split('/');
+    (parts.next() == Some(ROOT)).then(|| parts.next()).flatten()
+}
+
+/// The trailing numeric id of a key such as `crawler/<run>/alive/actor/<id>`.
+pub fn trailing_id(key: &str) -> Option<u32> {
+    key.rsplit('/').next()?.parse().ok()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn keys_nest_under_the_run() {
+        assert_eq!(transitions("r1", 3), "crawler/r1/transitions/3");
+        assert_eq!(run_of("crawler/r1/weights"), Some("r1"));
+        assert_eq!(run_of("other/r1/weights"), None);
+        assert_eq!(trailing_id(&alive_actor("r1", 12)), Some(12));
+        assert!(check_run_id("2026-11-22_run-1").is_ok());
+        for bad in ["", "a/b", "a*", "x".repeat(65).as_str(), "ünïcode"] {
+            assert!(check_run_id(bad).is_err(), "{bad}");
+        }
+    }
+}

@@ -1,0 +1,187 @@
+//! Wire messages (protobuf, via prost). Field numbers are part of the protocol: never reuse one.
+
+/// Transitions from one actor, for the learner's replay.
+///
+/// Transition i observed `observations[i·obs_dim .. (i+1)·obs_dim]` in crawler `env_ids[i]`,
+/// took `actions[i]`, got `rewards[i]` and reached `next_observations[i·obs_dim ..]`.
+#[derive(Clone, PartialEq, prost::Message)]
+pub struct TransitionBatch {
+    #[prost(uint32, tag = "1")]
+    pub protocol_version: u32,
+    #[prost(string, tag = "2")]
+    pub run_id: String,
+    #[prost(uint32, tag = "3")]
+    pub actor_id: u32,
+    /// Increases by one per batch from each actor process; restarts at 0 with the process.
+    #[prost(uint64, tag = "4")]
+    pub sequence: u64,
+    /// A fresh random value per actor process, so a restarted actor's sequence is not taken for
+    /// a replay of the old one's.
+    #[prost(uint64, tag = "5")]
+    pub incarnation: u64,
+    #[prost(uint32, tag = "6")]
+    pub obs_dim: u32,
+    #[prost(uint32, repeated, tag = "7")]
+    pub env_ids: Vec<u32>,
+    #[prost(float, repeated, tag = "8")]
+    pub observations: Vec<f32>,
+    #[prost(float, repeated, tag = "9")]
+    pub next_observations: Vec<f32>,
+    #[prost(uint32, repeated, tag = "10")]
+    pub actions: Vec<u32>,
+    #[prost(float, repeated, tag = "11")]
+    pub rewards: Vec<f32>,
+    #[prost(bool, repeated, tag = "12")]
+    pub terminated: Vec<bool>,
+    #[prost(bool, repeated, tag = "13")]
+    pub truncated: Vec<bool>,
+    /// Initial priorities for prioritised replay; empty for none.
+    #[prost(float, repeated, tag = "14")]
+    pub priorities: Vec<f32>,
+    /// Version of the weights that chose these actions.
+    #[prost(uint64, tag = "15")]
+    pub weights_version: u64,
+    /// Physics steps these transitions took (decisions × action repeat).
+    #[prost(uint64, tag = "16")]
+    pub physics_steps: u64,
+}
+
+impl TransitionBatch {
+    pub fn len(&self) -> usize {
+        self.actions.len()
+    }
+
+    pub fn is_empty(&self) -> bool {
+        self.actions.is_empty()
+    }
+}
+
+/// The Q-network's shape.
+#[derive(Clone, PartialEq, Eq, prost::Message)]
+pub struct NetworkSpec {
+    #[prost(uint32, tag = "1")]
+    pub obs_dim: u32,
+    #[prost(uint32, repeated, tag = "2")]
+    pub hidden: Vec<u32>,
+    #[prost(uint32, tag = "3")]
+    pub num_actions: u32,
+    #[prost(bool, tag = "4")]
+    pub layer_norm: bool,
+}
+
+/// Fresh weights from the learner.
+#[derive(Clone, PartialEq, prost::Message)]
+pub struct Weights {
+    #[prost(uint32, tag = "1")]
+    pub protocol_version: u32,
+    #[prost(string, tag = "2")]
+    pub run_id: String,
+    /// Increases with every publish, across learner restarts of the same run.
+    #[prost(uint64, tag = "3")]
+    pub version: u64,
+    /// Gradient updates behind these weights.
+    #[prost(uint64, tag = "4")]
+    pub learner_step: u64,
+    #[prost(message, optional, tag = "5")]
+    pub network: Option<NetworkSpec>,
+    /// The online network as a safetensors file, named like a PyTorch `nn.Sequential`.
+    #[prost(bytes = "vec", tag = "6")]
+    pub safetensors: Vec<u8>,
+}
+
+/// What an actor needs to know about the run it joins; served by the learner.
+#[derive(Clone, PartialEq, prost::Message)]
+pub struct RunInfo {
+    #[prost(uint32, tag = "1")]
+    pub protocol_version: u32,
+    #[prost(string, tag = "2")]
+    pub run_id: String,
+    /// The actors' settings (environment, exploration, batching) as JSON; the actor crate
+    /// defines and validates its schema.
+    #[prost(string, tag = "3")]
+    pub actor_settings_json: String,
+}
+
+/// One finished episode.
+#[derive(Clone, PartialEq, prost::Message)]
+pub struct EpisodeStats {
+    #[prost(uint32, tag = "1")]
+    pub protocol_version: u32,
+    #[prost(string, tag = "2")]
+    pub run_id: String,
+    #[prost(uint32, tag = "3")]
+    pub actor_id: u32,
+    #[prost(double, tag = "4")]
+    pub epsilon: f64,
+    #[prost(float, tag = "5")]
+    pub episode_return: f32,
+    #[prost(float, tag = "6")]
+    pub return_position: f32,
+    #[prost(float, tag = "7")]
+    pub return_upright: f32,
+    /// Metres in the rewarded direction.
+    #[prost(float, tag = "8")]
+    pub distance: f32,
+    /// Seconds of simulated time.
+    #[prost(float, tag = "9")]
+    pub duration: f32,
+    /// m/s in the rewarded direction.
+    #[prost(float, tag = "10")]
+    pub speed: f32,
+    #[prost(uint32, tag = "11")]
+    pub flips: u32,
+    #[prost(bool, tag = "12")]
+    pub terminated: bool,
+    #[prost(bool, tag = "13")]
+    pub truncated: bool,
+    /// From an evaluator (ε = 0), not a training actor.
+    #[prost(bool, tag = "14")]
+    pub evaluation: bool,
+    #[prost(uint64, tag = "15")]
+    pub weights_version: u64,
+}
+
+/// An actor's periodic report.
+#[derive(Clone, PartialEq, prost::Message)]
+pub struct ActorStatus {
+    #[prost(uint32, tag = "1")]
+    pub protocol_version: u32,
+    #[prost(string, tag = "2")]
+    pub run_id: String,
+    #[prost(uint32, tag = "3")]
+    pub actor_id: u32,
+    #[prost(uint64, tag = "4")]
+    pub weights_version: u64,
+    /// Decisions taken since the process started, over all its crawlers.
+    #[prost(uint64, tag = "5")]
+    pub env_steps: u64,
+    #[prost(uint64, tag = "6")]
+    pub physics_steps: u64,
+    #[prost(float, tag = "7")]
+    pub env_steps_per_second: f32,
+    #[prost(double, tag = "8")]
+    pub epsilon: f64,
+    #[prost(uint32, tag = "9")]
+    pub num_envs: u32,
+    #[prost(bool, tag = "10")]
+    pub evaluator: bool,
+}
+
+/// A command from the learner to every node of the run.
+#[derive(Clone, PartialEq, prost::Message)]
+pub struct Control {
+    #[prost(uint32, tag = "1")]
+    pub protocol_version: u32,
+    #[prost(string, tag = "2")]
+    pub run_id: String,
+    #[prost(enumeration = "Command", tag = "3")]
+    pub command: i32,
+}
+
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, PartialOrd, Ord, prost::Enumeration)]
+#[repr(i32)]
+pub enum Command {
+    Unspecified = 0,
+    /// The run is over: exit cleanly.
+    Stop = 1,
+}

@@ -1,0 +1,114 @@
+//! Helpers for tests that run real processes.
+
+#![allow(dead_code, clippy::unwrap_used)]
+
+use std::net::TcpListener;
+use std::path::{Path, PathBuf};
+use std::process::{Child, Command, ExitStatus, Stdio};
+use std::time::{Duration, Instant};
+
+/// A workspace binary, built by `cargo test --workspace` next to the test executables.
+pub fn binary(name: &str) -> PathBuf {
+    let exe = std::env::current_exe().unwrap();
+    let dir = exe.parent().and_then(Path::parent).unwrap();
+    let path = dir.join(name);
+    assert!(path.exists(), "{} is missing: run `cargo build --workspace --bins` (scripts/test does)", path.display());
+    path
+}
+
+/// The repository root (for configs/).
+pub fn repo_root() -> PathBuf {
+    Path::new(env!("CARGO_MANIFEST_DIR")).parent().unwrap().to_path_buf()
+}
+
+/// A loopback TCP port that was free a moment ago.
+pub fn free_port() -> u16 {
+    TcpListener::bind("127.0.0.1:0").unwrap().local_addr().unwrap().port()
+}
+
+/// A learner process that is killed if the test ends early.
+pub struct Learner {
+    pub child: Child,
+    pub runs_dir: PathBuf,
+    pub run: String,
+    pub port: u16,
+}
+
+impl Learner {
+    /// `learner --config configs/smoke.toml --actors <actors>` on a fresh port and runs dir.
+    pub fn start(runs_dir: &Path, run: &str, actors: usize, extra: &[&str]) -> Self {
+        let port = free_port();
+        let listen = format!("learner.listen=[\"tcp/127.0.0.1:{port}\"]");
+        let runs = format!("learner.runs_dir=\"{}\"", runs_dir.display());
+        let mut command = Command::new(binary("learner"));
+        command
+            .current_dir(repo_root())
+            .args(["--config", "configs/smoke.toml", "--run", run, "--actors", &actors.to_string()])
+            .args(["--set", &listen, "--set", &runs])
+            .args(["--actor-bin", binary("actor").to_str().unwrap()])
+            .args(extra)
+            .stdout(Stdio::null())
+            .stderr(Stdio::inherit());
+        let child = command.spawn().unwrap();
+        Self { child, runs_dir: runs_dir.to_path_buf(), run: run.to_string(), port }
+    }
+
+    pub fn status_path(&self) -> PathBuf {
+        self.runs_dir.join(&self.run).join("status.json")
+    }
+
+    /// The latest status.json, if one was written.
+    pub fn status(&self) -> Option<serde_json::Value> {
+        let text = std::fs::read_to_string(self.status_path()).ok()?;
+        serde_json::from_str(&text).ok()
+    }
+
+    /// Polls status.json until `done` holds; panics with the last status after `timeout`.
+    pub fn wait_for(
+        &mut self,
+        timeout: Duration,
+        what: &str,
+        done: impl Fn(&serde_json::Value) -> bool,
+    ) -> serde_json::Value {
+        let start = Instant::now();
+        loop {
+            if let Some(status) = self.status()
+                && done(&status)
+            {
+                return status;
+            }
+            if let Ok(Some(exit)) = self.child.try_wait() {
+                panic!("learner exited ({exit}) while waiting for {what}; last status {:?}", self.status());
+            }
+            assert!(start.elapsed() < timeout, "timed out waiting for {what}; last status: {:#?}", self.status());
+            std::thread::sleep(Duration::from_millis(200));
+        }
+    }
+
+    /// Sends SIGTERM and waits for a clean exit.
+    pub fn terminate(&mut self, timeout: Duration) -> ExitStatus {
+        let pid = self.child.id().to_string();
+        Command::new("kill").args(["-TERM", &pid]).status().unwrap();
+        let start = Instant::now();
+        loop {
+            if let Some(status) = self.child.try_wait().unwrap() {
+                return status;
+            }
+            assert!(start.elapsed() < timeout, "learner did not exit within {timeout:?} of SIGTERM");
+            std::thread::sleep(Duration::from_millis(100));
+        }
+    }
+}
+
+impl Drop for Learner {
+    fn drop(&mut self) {
+        if matches!(self.child.try_wait(), Ok(None)) {
+            let _ = self.child.kill();
+            let _ = self.child.wait();
+        }
+    }
+}
+
+pub fn u64_at(value: &serde_json::Value, pointer: &str) -> u64 {
+    value.pointer(pointer).and_then(serde_json::Value::as_u64).unwrap_or(0)
+}

@@ -1,0 +1,50 @@
+//! A learner and two actors, as real processes on loopback.
+
+#![allow(clippy::unwrap_used)]
+
+mod common;
+
+use std::process::Command;
+use std::time::Duration;
+
+use common::{Learner, binary, repo_root, u64_at};
+
+#[test]
+fn a_learner_trains_on_two_actors_and_checkpoints() {
+    let runs = tempfile::tempdir().unwrap();
+    let mut learner = Learner::start(runs.path(), "itest", 2, &[]);
+
+    let status = learner.wait_for(Duration::from_secs(180), "both actors' transitions in replay", |s| {
+        let both = |pointer: &str, min: u64| (0..2).all(|id| u64_at(s, &format!("/actors/{id}/{pointer}")) >= min);
+        both("transitions", 1) && both("weights_version", 3) && s["last_checkpoint"].is_string()
+    });
+    // The liveliness view lists both actors; weights reached them; training is sane.
+    assert_eq!(status["connected_actors"], serde_json::json!([0, 1]), "{status:#}");
+    assert!(status["loss"].as_f64().is_some_and(f64::is_finite), "loss {:?}", status["loss"]);
+    assert!(u64_at(&status, "/updates") > 0 && u64_at(&status, "/replay_len") > 0);
+    assert!(u64_at(&status, "/weights_version") >= 3);
+
+    let exit = learner.terminate(Duration::from_secs(60));
+    assert!(exit.success(), "learner exit after SIGTERM: {exit}");
+    // SIGTERM leaves a final checkpoint that loads, with finite weights and the replay.
+    let checkpoint = crawler_learner::checkpoint::load(&runs.path().join("itest/checkpoints")).unwrap();
+    assert!(checkpoint.meta.progress.updates >= u64_at(&status, "/updates"));
+    assert!(checkpoint.online.iter().all(|v| v.is_finite()));
+    let replay = crawler_learner::checkpoint::load_replay(&checkpoint).unwrap().unwrap();
+    assert!(replay.len() as u64 >= u64_at(&status, "/replay_len"));
+}
+
+#[test]
+fn bad_configs_are_refused_with_the_key_or_path_named() {
+    let run = |args: &[&str]| {
+        let output = Command::new(binary("learner")).current_dir(repo_root()).args(args).output().unwrap();
+        assert!(!output.status.success(), "{args:?} should fail");
+        String::from_utf8_lossy(&output.stderr).into_owned()
+    };
+    let message = run(&["--config", "configs/no-such-preset.toml", "--actors", "0"]);
+    assert!(message.contains("configs/no-such-preset.toml"), "{message}");
+    let message = run(&["--config", "configs/smoke.toml", "--set", "dqn.lr=5", "--actors", "0"]);
+    assert!(message.contains("dqn.lr") && message.contains("(0, 1)"), "{message}");
+    let message = run(&["--config", "configs/smoke.toml", "--set", "env.action_repeat=0", "--actors", "0"]);
+    assert!(message.contains("env.action_repeat"), "{message}");
+}
