@@ -217,7 +217,7 @@ impl TrainConfig {
             return Err(invalid("dqn.max_grad_norm", norm.to_string(), "a positive number"));
         }
         match d.target_update {
-            TargetUpdate::Hard { every } if every == 0 => {
+            TargetUpdate::Hard { every: 0 } => {
                 return Err(invalid("dqn.target_update.every", "0".into(), "at least 1"));
             }
             TargetUpdate::Polyak { tau } if !(tau > 0.0 && tau <= 1.0) => {
