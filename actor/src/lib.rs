@@ -2,6 +2,7 @@
 //! Q-network in plain Rust ([`policy`]), and the zenoh client that feeds the learner
 //! ([`node`]). Nothing here links libtorch.
 
+pub mod cli;
 pub mod env;
 pub mod node;
 pub mod policy;

@@ -368,6 +368,7 @@ fn simulate(
             batch.physics_steps += physics;
             if batch.len() >= settings.batch_transitions {
                 batch.weights_version = policy.version;
+                batch.count = batch.len() as u32;
                 let full = std::mem::replace(&mut batch, new_batch(run_id, options.id, incarnation));
                 batch.sequence = full.sequence + 1;
                 if out.blocking_send(Outgoing::Batch(full)).is_err() {

@@ -108,6 +108,8 @@ pub struct Status {
     pub mean_q: f64,
     pub connected_actors: Vec<u32>,
     pub actors: BTreeMap<u32, ActorView>,
+    /// Transitions per second received from each actor since the last status.
+    pub ingest_per_second: BTreeMap<u32, f64>,
     pub rejected: BTreeMap<&'static str, u64>,
     pub dropped_batches: u64,
     pub last_checkpoint: Option<String>,
@@ -388,6 +390,7 @@ fn train(
     let mut last_loss = (f64::NAN, f64::NAN);
     let mut status_clock = Instant::now();
     let mut status_counts = (progress.updates, progress.env_steps);
+    let mut actor_transitions: BTreeMap<u32, u64> = BTreeMap::new();
 
     let publish = |dqn: &Dqn, progress: &mut Progress| {
         progress.weights_version += 1;
@@ -465,6 +468,14 @@ fn train(
 
         if status_clock.elapsed().as_secs_f64() >= config.learner.status_every_s {
             let seconds = status_clock.elapsed().as_secs_f64();
+            let actors = lock(&shared.actors).clone();
+            let ingest_per_second = actors
+                .iter()
+                .map(|(&id, view)| {
+                    let before = actor_transitions.insert(id, view.transitions).unwrap_or(0);
+                    (id, view.transitions.saturating_sub(before) as f64 / seconds)
+                })
+                .collect();
             let status = Status {
                 run_id: run_id.to_string(),
                 elapsed_s: prior_seconds + session_start.elapsed().as_secs_f64(),
@@ -478,7 +489,8 @@ fn train(
                 loss: last_loss.0,
                 mean_q: last_loss.1,
                 connected_actors: lock(&shared.connected).iter().copied().collect(),
-                actors: lock(&shared.actors).clone(),
+                actors,
+                ingest_per_second,
                 rejected: lock(&shared.rejected).clone(),
                 dropped_batches: shared.dropped_batches.load(Ordering::Relaxed),
                 last_checkpoint: last_checkpoint.as_ref().map(|p| p.display().to_string()),
@@ -560,9 +572,16 @@ fn wire_spec(spec: &crawler_actor::policy::NetworkSpec) -> proto::NetworkSpec {
 
 /// Logs a status line and rewrites `status.json` atomically.
 fn report(status: &Status, run_dir: &Path) {
-    let speeds: Vec<String> = status.actors.iter().map(|(id, a)| format!("{id}:{:.2}", a.speed_ema)).collect();
+    let per_actor: Vec<String> = status
+        .actors
+        .iter()
+        .map(|(id, a)| {
+            let rate = status.ingest_per_second.get(id).copied().unwrap_or(0.0);
+            format!("#{id} {rate:.0}/s ε={:.4} v{} {:.2} m/s", a.epsilon, a.weights_version, a.speed_ema)
+        })
+        .collect();
     info!(
-        "updates {} ({:.0}/s) | env steps {} ({:.0}/s) | replay {} | weights v{} | loss {:.4} | actors {:?} | speed m/s {}",
+        "updates {} ({:.0}/s) | env steps {} ({:.0}/s) | replay {} | weights v{} | loss {:.4} | connected {:?} | {}",
         status.updates,
         status.updates_per_second,
         status.env_steps,
@@ -571,7 +590,7 @@ fn report(status: &Status, run_dir: &Path) {
         status.weights_version,
         status.loss,
         status.connected_actors,
-        speeds.join(" ")
+        per_actor.join(" | ")
     );
     let path = run_dir.join("status.json");
     let temp = run_dir.join("status.json.tmp");

@@ -44,6 +44,10 @@ pub struct TransitionBatch {
     /// Physics steps these transitions took (decisions × action repeat).
     #[prost(uint64, tag = "16")]
     pub physics_steps: u64,
+    /// The number of transitions. Encoded last, so a message cut short anywhere lacks it and
+    /// fails validation (protobuf itself cannot tell a truncated message from a short one).
+    #[prost(uint32, tag = "17")]
+    pub count: u32,
 }
 
 impl TransitionBatch {

@@ -107,6 +107,9 @@ pub fn transition_batch(bytes: &[u8], limits: &TransitionLimits) -> Result<Trans
     if n > limits.max_batch {
         return Err(ProtoError::BatchSize { got: n, max: limits.max_batch });
     }
+    if n == 0 || batch.count as usize != n {
+        return Err(ProtoError::Length { field: "actions (against count)", got: n, expected: batch.count as usize });
+    }
     let obs_values = n * limits.obs_dim as usize;
     length("observations", batch.observations.len(), obs_values)?;
     length("next_observations", batch.next_observations.len(), obs_values)?;
@@ -247,6 +250,7 @@ mod tests {
             priorities: vec![],
             weights_version: 1,
             physics_steps: n as u64,
+            count: n as u32,
         }
     }
 
@@ -296,8 +300,17 @@ mod tests {
         }
         let garbage = transition_batch(&[0xff, 0xff, 0xff, 0x01, 0x02], &limits()).unwrap_err();
         assert_eq!(garbage.kind(), "decode");
+        // A message cut short anywhere is rejected, never taken for a shorter valid one.
         let encoded = batch(3).encode_to_vec();
-        assert_eq!(transition_batch(&encoded[..encoded.len() - 5], &limits()).unwrap_err().kind(), "decode");
+        for cut in 1..encoded.len() {
+            assert!(transition_batch(&encoded[..encoded.len() - cut], &limits()).is_err(), "cut by {cut} bytes");
+        }
+        let mut empty = batch(0);
+        empty.count = 0;
+        assert_eq!(check(&empty).unwrap_err().kind(), "length");
+        let mut miscounted = batch(2);
+        miscounted.count = 3;
+        assert_eq!(check(&miscounted).unwrap_err().kind(), "length");
         let huge = vec![0u8; MAX_MESSAGE_BYTES + 1];
         assert_eq!(transition_batch(&huge, &limits()).unwrap_err().kind(), "oversize");
     }

@@ -2,12 +2,10 @@
 
 #![allow(clippy::unwrap_used)]
 
-mod common;
-
 use std::process::Command;
 use std::time::Duration;
 
-use common::{Learner, binary, repo_root, u64_at};
+use crawler_tests::{Learner, binary, repo_root, u64_at};
 
 #[test]
 fn a_learner_trains_on_two_actors_and_checkpoints() {

@@ -34,22 +34,9 @@ struct Args {
 }
 
 fn main() -> anyhow::Result<()> {
-    tracing_subscriber::fmt()
-        .with_writer(std::io::stderr)
-        .with_env_filter(
-            tracing_subscriber::EnvFilter::try_from_default_env().unwrap_or_else(|_| "info,zenoh=warn".into()),
-        )
-        .init();
+    crawler_actor::cli::init_logging();
     let args = Args::parse();
-    let zenoh_overrides = args
-        .zenoh
-        .iter()
-        .map(|pair| {
-            pair.split_once('=')
-                .map(|(k, v)| (k.trim().to_string(), v.trim().to_string()))
-                .with_context(|| format!("--zenoh {pair:?}: expected KEY=JSON5"))
-        })
-        .collect::<anyhow::Result<Vec<_>>>()?;
+    let zenoh_overrides = crawler_actor::cli::zenoh_overrides(&args.zenoh).map_err(anyhow::Error::msg)?;
     let options = ActorOptions {
         connect: args.connect,
         id: args.id,

@@ -1,0 +1,58 @@
+//! The whole system on one machine: a learner and two actors with the default preset.
+//! `cargo build --release --bins && cargo bench -p crawler-tests --bench system`
+//!
+//! Prints, from one run: what the actors produce against what the learner ingests
+//! (transitions/s), end-to-end env and physics steps/s and updates/s, and the resident
+//! memory of the learner and of each actor over time.
+#![allow(clippy::print_stdout, clippy::unwrap_used)]
+
+use std::time::{Duration, Instant};
+
+use crawler_tests::{Learner, children_of, rss_mib, u64_at};
+
+fn main() {
+    let seconds: u64 = std::env::var("SYSTEM_BENCH_SECONDS").ok().and_then(|s| s.parse().ok()).unwrap_or(90);
+    let runs = tempfile::tempdir().unwrap();
+    let extra = ["--set", "learner.status_every_s=5.0"];
+    let mut learner = Learner::start_with("configs/default.toml", runs.path(), "bench", 2, &extra);
+    learner.wait_for(Duration::from_secs(60), "training to start", |s| u64_at(s, "/updates") > 0);
+    let first = learner.status().unwrap();
+    let start = Instant::now();
+    println!(
+        "{:>6} {:>10} {:>10} {:>10} {:>12} {:>12}",
+        "t (s)", "learner", "actor 0", "actor 1", "updates/s", "ingest/s"
+    );
+    while start.elapsed() < Duration::from_secs(seconds) {
+        std::thread::sleep(Duration::from_secs(10));
+        let pid = learner.child.id();
+        let actors: Vec<f64> = children_of(pid).into_iter().filter_map(rss_mib).collect();
+        let status = learner.status().unwrap();
+        let actor_rss: Vec<String> = actors.iter().map(|r| format!("{r:>7.1} MiB")).collect();
+        println!(
+            "{:>6} {:>6.1} MiB {} {:>12.0} {:>12.0}",
+            start.elapsed().as_secs(),
+            rss_mib(pid).unwrap_or(f64::NAN),
+            actor_rss.join(" "),
+            status["updates_per_second"].as_f64().unwrap_or(f64::NAN),
+            status["env_steps_per_second"].as_f64().unwrap_or(f64::NAN),
+        );
+    }
+    let last = learner.status().unwrap();
+    let elapsed = last["elapsed_s"].as_f64().unwrap() - first["elapsed_s"].as_f64().unwrap();
+    let delta = |pointer: &str| (u64_at(&last, pointer) - u64_at(&first, pointer)) as f64 / elapsed;
+    let ingested = delta("/env_steps");
+    let produced: f64 =
+        (0..2).map(|id| last["actors"][id.to_string()]["env_steps_per_second"].as_f64().unwrap_or(0.0)).sum();
+    println!("== over {elapsed:.0} s");
+    println!(
+        "actors produce {produced:.0} transitions/s; the learner ingests {ingested:.0}/s ({:.2}x)",
+        ingested / produced
+    );
+    println!(
+        "end to end: {ingested:.0} env steps/s, {:.0} physics steps/s, {:.0} updates/s",
+        delta("/physics_steps"),
+        delta("/updates")
+    );
+    println!("dropped batches: {}, rejected: {}", last["dropped_batches"], last["rejected"]);
+    learner.terminate(Duration::from_secs(60));
+}
