@@ -172,7 +172,8 @@ impl TrainConfig {
     /// The config a checkpoint recorded (its `meta.json` `config`), with `overrides` applied.
     pub fn from_json(json: &serde_json::Value, origin: &str, overrides: &[String]) -> Result<Self, ConfigError> {
         let parse_error = |message: String| ConfigError::Parse { origin: origin.to_string(), message };
-        let table = toml::Table::try_from(json).map_err(|e| parse_error(e.to_string()))?;
+        // TOML has no null: an absent optional is how a preset says None.
+        let table = toml::Table::try_from(without_nulls(json)).map_err(|e| parse_error(e.to_string()))?;
         Self::from_table(table, origin, overrides)
     }
 
@@ -316,6 +317,16 @@ impl TrainConfig {
     }
 }
 
+fn without_nulls(value: &serde_json::Value) -> serde_json::Value {
+    match value {
+        serde_json::Value::Object(map) => {
+            map.iter().filter(|(_, v)| !v.is_null()).map(|(k, v)| (k.clone(), without_nulls(v))).collect()
+        }
+        serde_json::Value::Array(items) => items.iter().map(without_nulls).collect(),
+        other => other.clone(),
+    }
+}
+
 fn set_path(table: &mut toml::Table, path: &str, value: toml::Value) -> Result<(), ()> {
     let mut parts: Vec<&str> = path.split('.').collect();
     let last = parts.pop().filter(|p| !p.is_empty()).ok_or(())?;
@@ -351,6 +362,9 @@ mod tests {
         let err = TrainConfig::from_toml("[dqn]\nlrr = 1\n", "test", &[]).unwrap_err().to_string();
         assert!(err.contains("lrr"), "{err}");
         assert!(matches!(TrainConfig::from_toml("", "t", &["nonsense".into()]), Err(ConfigError::Override(_))));
+        // A config survives the JSON round trip a checkpoint gives it, None values included.
+        let json = serde_json::to_value(&config).unwrap();
+        assert_eq!(TrainConfig::from_json(&json, "test", &[]).unwrap(), config);
         let missing = TrainConfig::load(Path::new("/no/such/config.toml"), &[]).unwrap_err().to_string();
         assert!(missing.contains("/no/such/config.toml"), "{missing}");
     }

@@ -30,6 +30,22 @@ fn a_learner_trains_on_two_actors_and_checkpoints() {
     assert!(checkpoint.online.iter().all(|v| v.is_finite()));
     let replay = crawler_learner::checkpoint::load_replay(&checkpoint).unwrap().unwrap();
     assert!(replay.len() as u64 >= u64_at(&status, "/replay_len"));
+
+    // `eval` of that checkpoint: JSON on stdout, the same for the same seeds.
+    let eval = || {
+        let output = Command::new(binary("eval"))
+            .arg(runs.path().join("itest/checkpoints"))
+            .args(["--episodes", "3", "--seconds", "2", "--seed", "5"])
+            .output()
+            .unwrap();
+        assert!(output.status.success(), "{}", String::from_utf8_lossy(&output.stderr));
+        serde_json::from_slice::<serde_json::Value>(&output.stdout).unwrap()
+    };
+    let first = eval();
+    assert_eq!(first, eval(), "eval is deterministic for fixed seeds");
+    assert_eq!(first["episodes"].as_array().unwrap().len(), 3);
+    assert!(first["speed"]["mean"].as_f64().unwrap().is_finite());
+    assert!((first["episodes"][0]["duration"].as_f64().unwrap() - 2.0).abs() < 1e-3);
 }
 
 #[test]

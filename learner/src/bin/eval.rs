@@ -1,0 +1,133 @@
+//! `eval`: greedy episodes (ε = 0) of a checkpoint, with fixed seeds.
+//!
+//! `eval runs/<run>/checkpoints` (newest) or `eval runs/<run>/checkpoints/step-…`.
+//! Per-episode results and mean ± std go to stdout as JSON; a summary goes to stderr.
+//! Episodes last `--seconds` of simulated time; the progress rule does not cut them short.
+
+use std::path::PathBuf;
+
+use anyhow::Context;
+use clap::Parser;
+use crawler_actor::env::{Crawler, EpisodeSummary, OBS_DIM};
+use crawler_actor::policy::MlpPolicy;
+use crawler_learner::checkpoint;
+use crawler_learner::config::TrainConfig;
+use serde::Serialize;
+use tracing::info;
+
+#[derive(Debug, Parser)]
+#[command(version, about = "Evaluate a checkpoint greedily: speed in m/s, distance, return, flips")]
+struct Args {
+    /// A checkpoint directory (step-…) or a directory of them (the newest is taken).
+    checkpoint: PathBuf,
+    /// Episodes to run; episode i uses seed `seed + i`.
+    #[arg(long, default_value_t = 10)]
+    episodes: u64,
+    /// Simulated seconds per episode.
+    #[arg(long, default_value_t = 20.0)]
+    seconds: f32,
+    #[arg(long, default_value_t = 1_000_000)]
+    seed: u64,
+    /// Override an env setting of the checkpoint's config, e.g. --set env.direction=backward.
+    #[arg(long = "set", value_name = "KEY=VALUE")]
+    overrides: Vec<String>,
+}
+
+#[derive(Debug, Serialize)]
+struct Episode {
+    seed: u64,
+    speed: f32,
+    distance: f32,
+    duration: f32,
+    episode_return: f32,
+    return_position: f32,
+    return_upright: f32,
+    flips: u32,
+}
+
+#[derive(Debug, Serialize)]
+struct MeanStd {
+    mean: f64,
+    std: f64,
+}
+
+fn mean_std(values: impl Iterator<Item = f64> + Clone) -> MeanStd {
+    let n = values.clone().count().max(1) as f64;
+    let mean = values.clone().sum::<f64>() / n;
+    let var = values.map(|v| (v - mean).powi(2)).sum::<f64>() / n;
+    MeanStd { mean, std: var.sqrt() }
+}
+
+fn main() -> anyhow::Result<()> {
+    crawler_actor::cli::init_logging();
+    let args = Args::parse();
+    let loaded = checkpoint::load(&args.checkpoint)?;
+    let config = TrainConfig::from_json(&loaded.meta.config, "the checkpoint's config", &args.overrides)?;
+    let weights = std::fs::read(loaded.path.join("weights.safetensors"))
+        .with_context(|| format!("reading {}", loaded.path.display()))?;
+    let policy = MlpPolicy::from_safetensors(&weights, &loaded.meta.network)?;
+    let mut env = config.env.clone();
+    let steps = (args.seconds / env.dt).round() as u32;
+    anyhow::ensure!(steps > 0, "--seconds {} is less than one physics step", args.seconds);
+    env.max_episode_steps = steps;
+    env.min_episode_steps = steps;
+    info!(checkpoint = %loaded.path.display(), updates = loaded.meta.progress.updates, "evaluating");
+
+    let mut episodes = Vec::new();
+    let mut actions = Vec::new();
+    let mut observation = [0.0f32; OBS_DIM];
+    for i in 0..args.episodes {
+        let seed = args.seed + i;
+        let mut crawler = Crawler::new(env.clone(), seed);
+        let summary: EpisodeSummary = loop {
+            crawler.observe(&mut observation);
+            policy.greedy_actions(&observation, &mut actions)?;
+            let outcome = crawler.step(actions[0]);
+            if outcome.done() {
+                break crawler.episode_summary(Some(outcome));
+            }
+        };
+        episodes.push(Episode {
+            seed,
+            speed: summary.speed,
+            distance: summary.distance,
+            duration: summary.duration,
+            episode_return: summary.reward.total(),
+            return_position: summary.reward.position,
+            return_upright: summary.reward.upright,
+            flips: summary.flips,
+        });
+    }
+    let speed = mean_std(episodes.iter().map(|e| f64::from(e.speed)));
+    let distance = mean_std(episodes.iter().map(|e| f64::from(e.distance)));
+    let episode_return = mean_std(episodes.iter().map(|e| f64::from(e.episode_return)));
+    let flips: u32 = episodes.iter().map(|e| e.flips).sum();
+    eprintln!(
+        "{}: speed {:.3} ± {:.3} m/s, distance {:.2} ± {:.2} m, return {:.1} ± {:.1}, flips {flips} over {} episodes of {} s",
+        loaded.path.display(),
+        speed.mean,
+        speed.std,
+        distance.mean,
+        distance.std,
+        episode_return.mean,
+        episode_return.std,
+        episodes.len(),
+        args.seconds
+    );
+    let report = serde_json::json!({
+        "checkpoint": loaded.path,
+        "updates": loaded.meta.progress.updates,
+        "env_steps": loaded.meta.progress.env_steps,
+        "physics_steps": loaded.meta.progress.physics_steps,
+        "train_seconds": loaded.meta.progress.train_seconds,
+        "episodes": episodes,
+        "speed": speed,
+        "distance": distance,
+        "return": episode_return,
+        "flips": flips,
+    });
+    let mut stdout = std::io::stdout().lock();
+    serde_json::to_writer_pretty(&mut stdout, &report)?;
+    std::io::Write::write_all(&mut stdout, b"\n")?;
+    Ok(())
+}
