@@ -46,13 +46,23 @@ impl Learner {
 
     /// Like [`Learner::start`] with another preset.
     pub fn start_with(config: &str, runs_dir: &Path, run: &str, actors: usize, extra: &[&str]) -> Self {
+        Self::launch(&["--config", config, "--run", run], runs_dir, run, actors, extra)
+    }
+
+    /// `learner --resume <run>` with its own stored config (plus a fresh port and `extra`).
+    pub fn resume(runs_dir: &Path, run: &str, actors: usize, extra: &[&str]) -> Self {
+        Self::launch(&["--resume", run], runs_dir, run, actors, extra)
+    }
+
+    fn launch(mode: &[&str], runs_dir: &Path, run: &str, actors: usize, extra: &[&str]) -> Self {
         let port = free_port();
         let listen = format!("learner.listen=[\"tcp/127.0.0.1:{port}\"]");
         let runs = format!("learner.runs_dir=\"{}\"", runs_dir.display());
         let mut command = Command::new(binary("learner"));
         command
             .current_dir(repo_root())
-            .args(["--config", config, "--run", run, "--actors", &actors.to_string()])
+            .args(mode)
+            .args(["--actors", &actors.to_string()])
             .args(["--set", &listen, "--set", &runs])
             .args(["--actor-bin", binary("actor").to_str().unwrap()])
             .args(extra)
@@ -91,6 +101,22 @@ impl Learner {
             }
             assert!(start.elapsed() < timeout, "timed out waiting for {what}; last status: {:#?}", self.status());
             std::thread::sleep(Duration::from_millis(200));
+        }
+    }
+
+    /// Waits for the learner to exit by itself (a configured limit).
+    pub fn wait_for_exit(&mut self, timeout: Duration) -> ExitStatus {
+        let start = Instant::now();
+        loop {
+            if let Some(status) = self.child.try_wait().unwrap() {
+                return status;
+            }
+            assert!(
+                start.elapsed() < timeout,
+                "learner still running after {timeout:?}; last status {:?}",
+                self.status()
+            );
+            std::thread::sleep(Duration::from_millis(100));
         }
     }
 

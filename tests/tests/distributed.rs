@@ -62,3 +62,29 @@ fn bad_configs_are_refused_with_the_key_or_path_named() {
     let message = run(&["--config", "configs/smoke.toml", "--set", "env.action_repeat=0", "--actors", "0"]);
     assert!(message.contains("env.action_repeat"), "{message}");
 }
+
+#[test]
+fn a_resumed_run_continues_its_counters_weights_version_and_replay() {
+    let runs = tempfile::tempdir().unwrap();
+    let mut first = Learner::start(runs.path(), "resumed", 2, &["--set", "learner.max_updates=150"]);
+    let exit = first.wait_for_exit(Duration::from_secs(180));
+    assert!(exit.success(), "first session: {exit}");
+    let checkpoints = runs.path().join("resumed/checkpoints");
+    let before = crawler_learner::checkpoint::load(&checkpoints).unwrap();
+    let replay_before = crawler_learner::checkpoint::load_replay(&before).unwrap().unwrap().len();
+    assert_eq!(before.meta.progress.updates, 150);
+
+    // `--resume` takes the run's own config; the overrides here only move the goal post.
+    let mut second = Learner::resume(runs.path(), "resumed", 2, &["--set", "learner.max_updates=300"]);
+    let exit = second.wait_for_exit(Duration::from_secs(180));
+    assert!(exit.success(), "resumed session: {exit}");
+    let after = crawler_learner::checkpoint::load(&checkpoints).unwrap();
+    let (p0, p1) = (&before.meta.progress, &after.meta.progress);
+    assert_eq!(p1.updates, 300, "updates continue from 150 to the new limit");
+    assert!(p1.env_steps > p0.env_steps && p1.physics_steps > p0.physics_steps, "{p0:?} → {p1:?}");
+    assert!(p1.weights_version > p0.weights_version, "weights versions continue: {p0:?} → {p1:?}");
+    assert!(p1.train_seconds > p0.train_seconds);
+    assert_eq!(after.meta.run_id, "resumed");
+    let replay_after = crawler_learner::checkpoint::load_replay(&after).unwrap().unwrap().len();
+    assert!(replay_after > replay_before, "the replay was restored and grew: {replay_before} → {replay_after}");
+}
