@@ -199,32 +199,14 @@ pub async fn run(options: ServiceOptions, stop: Arc<AtomicBool>) -> Result<Outco
         .callback(ingest_callback(limits, ingest_tx, Arc::clone(&shared)))
         .await
         .map_err(zenoh_error("subscribing to transitions"))?;
-    let stats_shared = Arc::clone(&shared);
-    let stats_run = run_id.clone();
     let _stats = session
         .declare_subscriber(keys::all_stats(&run_id))
-        .callback(move |sample| match proto::validate::episode_stats(&sample.payload().to_bytes(), &stats_run) {
-            Ok(stats) => record_episode(&stats_shared, &stats),
-            Err(e) => count_rejection(&stats_shared, &e),
-        })
+        .callback(validated(&shared, &run_id, proto::validate::episode_stats, record_episode))
         .await
         .map_err(zenoh_error("subscribing to stats"))?;
-    let status_shared = Arc::clone(&shared);
-    let status_run = run_id.clone();
     let _status = session
         .declare_subscriber(keys::all_status(&run_id))
-        .callback(move |sample| match proto::validate::actor_status(&sample.payload().to_bytes(), &status_run) {
-            Ok(report) if !report.evaluator => {
-                let mut actors = lock(&status_shared.actors);
-                let view = actors.entry(report.actor_id).or_default();
-                view.weights_version = report.weights_version;
-                view.env_steps = report.env_steps;
-                view.env_steps_per_second = report.env_steps_per_second;
-                view.epsilon = report.epsilon;
-            }
-            Ok(_) => {}
-            Err(e) => count_rejection(&status_shared, &e),
-        })
+        .callback(validated(&shared, &run_id, proto::validate::actor_status, record_status))
         .await
         .map_err(zenoh_error("subscribing to status"))?;
     let alive_shared = Arc::clone(&shared);
@@ -295,10 +277,38 @@ fn count_rejection(shared: &Shared, error: &proto::ProtoError) {
     }
 }
 
-fn record_episode(shared: &Shared, stats: &proto::EpisodeStats) {
+/// A subscriber callback that validates each message with `decode` and hands valid ones to
+/// `record`; rejections are counted and logged with rate limiting.
+fn validated<M: 'static>(
+    shared: &Arc<Shared>,
+    run_id: &str,
+    decode: fn(&[u8], &str) -> Result<M, proto::ProtoError>,
+    record: fn(&Shared, M),
+) -> impl Fn(zenoh::sample::Sample) + Send + Sync + 'static {
+    let shared = Arc::clone(shared);
+    let run_id = run_id.to_string();
+    move |sample| match decode(&sample.payload().to_bytes(), &run_id) {
+        Ok(message) => record(&shared, message),
+        Err(e) => count_rejection(&shared, &e),
+    }
+}
+
+fn record_status(shared: &Shared, report: proto::ActorStatus) {
+    if report.evaluator {
+        return;
+    }
+    let mut actors = lock(&shared.actors);
+    let view = actors.entry(report.actor_id).or_default();
+    view.weights_version = report.weights_version;
+    view.env_steps = report.env_steps;
+    view.env_steps_per_second = report.env_steps_per_second;
+    view.epsilon = report.epsilon;
+}
+
+fn record_episode(shared: &Shared, stats: proto::EpisodeStats) {
     if stats.evaluation {
         info!(speed = stats.speed, distance = stats.distance, weights = stats.weights_version, "evaluation episode");
-        *lock(&shared.evaluation) = Some(stats.clone());
+        *lock(&shared.evaluation) = Some(stats);
         return;
     }
     let mut actors = lock(&shared.actors);
