@@ -1,0 +1,121 @@
+//! Learning speed: trains the default preset and evaluates it greedily as it goes.
+//! `cargo build --release --bins && cargo bench -p crawler-tests --bench learning_speed`
+//!
+//! Environment: `MINUTES` of training (default 20), `SEED` (default 0), `CONFIG` (default
+//! configs/default.toml), `EVAL_EVERY_S` (default 30). About every `EVAL_EVERY_S` seconds the
+//! newest checkpoint is run for 10 greedy episodes of 20 s (`eval`). Prints each evaluation,
+//! the wall time of training to the first evaluation ≥ 0.5 m/s, the speed at 20 and 60
+//! minutes, and the env steps and updates done. Evaluation shares the machine with training,
+//! as a user's would.
+#![allow(clippy::print_stdout, clippy::unwrap_used)]
+
+use std::path::PathBuf;
+use std::process::Command;
+use std::time::Duration;
+
+use crawler_tests::{Learner, binary};
+
+fn env_or<T: std::str::FromStr>(name: &str, default: T) -> T {
+    std::env::var(name).ok().and_then(|v| v.parse().ok()).unwrap_or(default)
+}
+
+struct Evaluation {
+    train_seconds: f64,
+    updates: u64,
+    env_steps: u64,
+    physics_steps: u64,
+    speed: f64,
+    speed_std: f64,
+    flips: u64,
+}
+
+fn evaluate(checkpoint: &PathBuf) -> Option<Evaluation> {
+    let output = Command::new(binary("eval")).arg(checkpoint).output().ok()?;
+    let report: serde_json::Value = serde_json::from_slice(&output.stdout).ok()?;
+    Some(Evaluation {
+        train_seconds: report["train_seconds"].as_f64()?,
+        updates: report["updates"].as_u64()?,
+        env_steps: report["env_steps"].as_u64()?,
+        physics_steps: report["physics_steps"].as_u64()?,
+        speed: report["speed"]["mean"].as_f64()?,
+        speed_std: report["speed"]["std"].as_f64()?,
+        flips: report["flips"].as_u64()?,
+    })
+}
+
+fn main() {
+    let minutes: f64 = env_or("MINUTES", 20.0);
+    let seed: u64 = env_or("SEED", 0);
+    let config: String = env_or("CONFIG", "configs/default.toml".to_string());
+    let eval_every: f64 = env_or("EVAL_EVERY_S", 30.0);
+    let runs = tempfile::tempdir().unwrap();
+    let settings = [
+        format!("learner.max_seconds={}", minutes * 60.0),
+        "learner.checkpoint_every=2000".into(),
+        "learner.keep_checkpoints=1000000".into(),
+        "learner.snapshot_replay=false".into(),
+        format!("dqn.seed={seed}"),
+        format!("actor.seed={}", seed * 100_000),
+    ];
+    let mut extra = Vec::new();
+    for setting in &settings {
+        extra.extend(["--set", setting.as_str()]);
+    }
+    let mut learner = Learner::start_with(&config, runs.path(), "speed", 2, &extra);
+    let checkpoints = runs.path().join("speed/checkpoints");
+    println!("config {config}, seed {seed}, {minutes} min");
+    println!(
+        "{:>8} {:>10} {:>12} {:>14} {:>16} {:>6}",
+        "train s", "updates", "env steps", "physics steps", "speed m/s", "flips"
+    );
+    let mut evaluations: Vec<Evaluation> = Vec::new();
+    let mut last_evaluated = -f64::INFINITY;
+    loop {
+        let finished = matches!(learner.child.try_wait(), Ok(Some(_)));
+        let newest = crawler_learner::checkpoint::list(&checkpoints).ok().and_then(|mut l| l.pop());
+        if let Some(path) = newest
+            && let Some(evaluation) = evaluate(&path)
+            && (evaluation.train_seconds - last_evaluated >= eval_every || finished)
+            && evaluations.last().is_none_or(|e| e.updates != evaluation.updates)
+        {
+            println!(
+                "{:>8.0} {:>10} {:>12} {:>14} {:>9.3} ± {:.3} {:>6}",
+                evaluation.train_seconds,
+                evaluation.updates,
+                evaluation.env_steps,
+                evaluation.physics_steps,
+                evaluation.speed,
+                evaluation.speed_std,
+                evaluation.flips
+            );
+            last_evaluated = evaluation.train_seconds;
+            evaluations.push(evaluation);
+        }
+        if finished {
+            break;
+        }
+        std::thread::sleep(Duration::from_secs(2));
+    }
+    let first = evaluations.iter().find(|e| e.speed >= 0.5);
+    match first {
+        Some(e) => println!(
+            "first evaluation >= 0.5 m/s: {:.0} s of training ({:.3} m/s, {} physics steps)",
+            e.train_seconds, e.speed, e.physics_steps
+        ),
+        None => println!("no evaluation reached 0.5 m/s"),
+    }
+    for mark in [20.0, 60.0] {
+        match evaluations.iter().rev().find(|e| e.train_seconds <= mark * 60.0 + 1.0) {
+            Some(e) if minutes >= mark => {
+                println!("speed at {mark} min: {:.3} ± {:.3} m/s, {} flips", e.speed, e.speed_std, e.flips)
+            }
+            _ => println!("speed at {mark} min: not reached (run with MINUTES={mark})"),
+        }
+    }
+    if let Some(e) = evaluations.last() {
+        println!(
+            "done: {} env steps, {} physics steps, {} updates in {:.0} s",
+            e.env_steps, e.physics_steps, e.updates, e.train_seconds
+        );
+    }
+}
