@@ -1,0 +1,100 @@
+//! Property tests of the transition-batch decoder: valid batches round-trip, and no input,
+//! random or a mutated valid message, makes it panic or accept something inconsistent.
+
+#![allow(clippy::unwrap_used)]
+
+use crawler_proto::validate::transition_batch;
+use crawler_proto::{PROTOCOL_VERSION, TransitionBatch, TransitionLimits};
+use proptest::prelude::*;
+use prost::Message;
+
+const OBS_DIM: u32 = 4;
+
+fn limits() -> TransitionLimits {
+    TransitionLimits { run_id: "run".into(), obs_dim: OBS_DIM, num_actions: 25, max_batch: 64 }
+}
+
+fn valid_batch() -> impl Strategy<Value = TransitionBatch> {
+    (1usize..32, any::<u64>(), any::<u64>()).prop_flat_map(|(n, sequence, incarnation)| {
+        let values = n * OBS_DIM as usize;
+        (
+            prop::collection::vec(-1e3f32..1e3, values),
+            prop::collection::vec(-1e3f32..1e3, values),
+            prop::collection::vec(0u32..25, n),
+            prop::collection::vec(-10f32..10.0, n),
+            prop::collection::vec(any::<bool>(), n),
+            prop::collection::vec(any::<bool>(), n),
+            prop::collection::vec(0u32..8, n),
+        )
+            .prop_map(
+                move |(observations, next_observations, actions, rewards, terminated, truncated, env_ids)| {
+                    TransitionBatch {
+                        protocol_version: PROTOCOL_VERSION,
+                        run_id: "run".into(),
+                        actor_id: 3,
+                        sequence,
+                        incarnation,
+                        obs_dim: OBS_DIM,
+                        env_ids,
+                        observations,
+                        next_observations,
+                        actions,
+                        rewards,
+                        terminated,
+                        truncated,
+                        priorities: vec![],
+                        weights_version: 7,
+                        physics_steps: n as u64 * 10,
+                        count: n as u32,
+                    }
+                },
+            )
+    })
+}
+
+/// What validation promises about anything it accepts.
+fn consistent(batch: &TransitionBatch) -> bool {
+    let n = batch.actions.len();
+    let values = n * OBS_DIM as usize;
+    n > 0
+        && batch.count as usize == n
+        && batch.observations.len() == values
+        && batch.next_observations.len() == values
+        && [batch.env_ids.len(), batch.rewards.len(), batch.terminated.len(), batch.truncated.len()]
+            .iter()
+            .all(|&l| l == n)
+        && batch.observations.iter().chain(&batch.next_observations).chain(&batch.rewards).all(|v| v.is_finite())
+        && batch.actions.iter().all(|&a| a < 25)
+}
+
+proptest! {
+    #![proptest_config(ProptestConfig::with_cases(2_000))]
+
+    #[test]
+    fn valid_batches_round_trip(batch in valid_batch()) {
+        let decoded = transition_batch(&batch.encode_to_vec(), &limits()).unwrap();
+        prop_assert_eq!(decoded, batch);
+    }
+
+    #[test]
+    fn random_bytes_never_panic(bytes in prop::collection::vec(any::<u8>(), 0..4096)) {
+        if let Ok(batch) = transition_batch(&bytes, &limits()) {
+            prop_assert!(consistent(&batch));
+        }
+    }
+
+    #[test]
+    fn mutated_messages_are_rejected_or_still_consistent(
+        batch in valid_batch(),
+        flips in prop::collection::vec((any::<prop::sample::Index>(), any::<u8>()), 1..8),
+    ) {
+        let mut bytes = batch.encode_to_vec();
+        for (index, value) in flips {
+            let i = index.index(bytes.len());
+            bytes[i] ^= value;
+        }
+        if let Ok(decoded) = transition_batch(&bytes, &limits()) {
+            prop_assert!(consistent(&decoded), "{decoded:?}");
+        }
+    }
+}
