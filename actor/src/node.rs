@@ -103,7 +103,18 @@ struct Counters {
 pub async fn run(options: ActorOptions, stop: Arc<AtomicBool>) -> Result<(), NodeError> {
     let config = client_config(&options.connect, &options.zenoh_overrides)?;
     info!(endpoints = ?options.connect, id = options.id, "connecting to the learner");
-    let session = zenoh::open(config).await.map_err(zenoh_error("opening the session"))?;
+    // With connect/timeout_ms = -1, opening waits for the learner forever, and its future
+    // blocks the thread that polls it; open on a blocking thread so a signal can end the wait.
+    let opening = tokio::task::spawn_blocking(move || zenoh::Wait::wait(zenoh::open(config)));
+    let session = tokio::select! {
+        session = opening => session
+            .map_err(|e| NodeError::Zenoh { context: "opening the session".into(), message: e.to_string() })?
+            .map_err(zenoh_error("opening the session"))?,
+        () = stopped(&stop) => {
+            info!("stopped before reaching a learner");
+            return Ok(());
+        }
+    };
 
     let (run_id, settings) = fetch_run_info(&session, options.run.as_deref(), &stop).await?;
     info!(run = %run_id, envs = settings.envs_per_actor, evaluator = options.evaluator, "joined run");
@@ -244,6 +255,13 @@ pub async fn run(options: ActorOptions, stop: Arc<AtomicBool>) -> Result<(), Nod
     match result {
         Ok(()) => Ok(()),
         Err(_) => Err(NodeError::Settings("the simulation thread panicked".into())),
+    }
+}
+
+/// Resolves once `stop` is set.
+async fn stopped(stop: &AtomicBool) {
+    while !stop.load(Ordering::SeqCst) {
+        tokio::time::sleep(Duration::from_millis(100)).await;
     }
 }
 

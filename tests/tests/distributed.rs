@@ -88,3 +88,28 @@ fn a_resumed_run_continues_its_counters_weights_version_and_replay() {
     let replay_after = crawler_learner::checkpoint::load_replay(&after).unwrap().unwrap().len();
     assert!(replay_after > replay_before, "the replay was restored and grew: {replay_before} → {replay_after}");
 }
+
+#[test]
+fn an_actor_waiting_for_an_absent_learner_exits_on_sigterm() {
+    let port = crawler_tests::free_port();
+    let mut actor = Command::new(binary("actor"))
+        .args(["--connect", &format!("tcp/127.0.0.1:{port}"), "--id", "0"])
+        .stderr(std::process::Stdio::null())
+        .spawn()
+        .unwrap();
+    std::thread::sleep(Duration::from_millis(1500));
+    assert!(actor.try_wait().unwrap().is_none(), "it waits for the learner");
+    Command::new("kill").args(["-TERM", &actor.id().to_string()]).status().unwrap();
+    let start = std::time::Instant::now();
+    let status = loop {
+        if let Some(status) = actor.try_wait().unwrap() {
+            break status;
+        }
+        if start.elapsed() > Duration::from_secs(5) {
+            let _ = actor.kill();
+            panic!("the actor ignored SIGTERM while connecting");
+        }
+        std::thread::sleep(Duration::from_millis(50));
+    };
+    assert!(status.success(), "{status}");
+}

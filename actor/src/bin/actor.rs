@@ -50,10 +50,12 @@ fn main() -> anyhow::Result<()> {
         .enable_all()
         .build()
         .context("starting the async runtime")?;
-    runtime.block_on(async {
+    let result = runtime.block_on(async {
         let stop = Arc::new(AtomicBool::new(false));
         tokio::spawn(node::stop_on_signal(Arc::clone(&stop)));
         node::run(options, stop).await
-    })?;
-    Ok(())
+    });
+    // A connect still waiting for an absent learner holds a blocking thread: do not wait for it.
+    runtime.shutdown_timeout(std::time::Duration::from_secs(1));
+    Ok(result?)
 }
