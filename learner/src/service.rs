@@ -402,6 +402,12 @@ fn train(
     let mut status_counts = (progress.updates, progress.env_steps);
     let mut actor_transitions: BTreeMap<u32, u64> = BTreeMap::new();
 
+    // Every checkpoint, periodic or final, records the training time and ε at that moment.
+    let save_checkpoint = |dqn: &Dqn, progress: &mut Progress, replay: Option<&Replay>| {
+        progress.train_seconds = prior_seconds + session_start.elapsed().as_secs_f64();
+        progress.epsilon = mean_epsilon(shared);
+        checkpoint::save(&checkpoint_dir, dqn, run_id, progress, &config_json, replay, config.learner.keep_checkpoints)
+    };
     let publish = |dqn: &Dqn, progress: &mut Progress| {
         progress.weights_version += 1;
         let message = proto::Weights {
@@ -460,17 +466,7 @@ fn train(
                 }
                 let every = config.learner.checkpoint_every;
                 if every > 0 && progress.updates.is_multiple_of(every) {
-                    progress.train_seconds = prior_seconds + session_start.elapsed().as_secs_f64();
-                    progress.epsilon = mean_epsilon(shared);
-                    let path = checkpoint::save(
-                        &checkpoint_dir,
-                        &dqn,
-                        run_id,
-                        &progress,
-                        &config_json,
-                        None,
-                        config.learner.keep_checkpoints,
-                    )?;
+                    let path = save_checkpoint(&dqn, &mut progress, None)?;
                     last_checkpoint = Some(path);
                 }
             }
@@ -512,18 +508,8 @@ fn train(
         }
     }
 
-    progress.train_seconds = prior_seconds + session_start.elapsed().as_secs_f64();
-    progress.epsilon = mean_epsilon(shared);
     let snapshot = config.learner.snapshot_replay.then_some(&replay);
-    let path = checkpoint::save(
-        &checkpoint_dir,
-        &dqn,
-        run_id,
-        &progress,
-        &config_json,
-        snapshot,
-        config.learner.keep_checkpoints,
-    )?;
+    let path = save_checkpoint(&dqn, &mut progress, snapshot)?;
     info!(updates = progress.updates, env_steps = progress.env_steps, "final checkpoint {}", path.display());
     Ok(Outcome { progress, last_checkpoint: Some(path) })
 }
