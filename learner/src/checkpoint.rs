@@ -361,9 +361,17 @@ pub fn load_replay(checkpoint: &Checkpoint) -> Result<Option<Replay>, Checkpoint
 }
 
 impl Dqn {
-    /// Restores weights, target and optimiser state from `checkpoint`. The network spec must
-    /// match this learner's.
-    pub fn restore(&mut self, checkpoint: &Checkpoint) -> Result<(), CheckpointError> {
+    /// Copies the online and target networks of `checkpoint` (another run's, for transfer);
+    /// the optimiser and the update count stay fresh. The network spec must match.
+    pub fn initialise_from(&mut self, checkpoint: &Checkpoint) -> Result<(), CheckpointError> {
+        self.check_network(checkpoint)?;
+        let bad = |e: String| corrupt(&checkpoint.path, e);
+        self.online.load_flat(&checkpoint.online).map_err(bad)?;
+        self.target.load_flat(&checkpoint.target).map_err(bad)?;
+        Ok(())
+    }
+
+    fn check_network(&self, checkpoint: &Checkpoint) -> Result<(), CheckpointError> {
         if checkpoint.meta.network != self.config.network {
             return Err(CheckpointError::Mismatch {
                 path: checkpoint.path.clone(),
@@ -372,6 +380,13 @@ impl Dqn {
                 expected: format!("{:?}", self.config.network),
             });
         }
+        Ok(())
+    }
+
+    /// Restores weights, target and optimiser state from `checkpoint`. The network spec must
+    /// match this learner's.
+    pub fn restore(&mut self, checkpoint: &Checkpoint) -> Result<(), CheckpointError> {
+        self.check_network(checkpoint)?;
         let bad = |e: String| corrupt(&checkpoint.path, e);
         self.online.load_flat(&checkpoint.online).map_err(bad)?;
         self.target.load_flat(&checkpoint.target).map_err(bad)?;

@@ -5,11 +5,17 @@
 //! - [`dqn`]: TD targets (Double or vanilla), loss, target-network upkeep.
 //! - [`replay`]: the ring buffer (each observation stored once), n-step returns, PER.
 //! - [`rate`]: the samples-per-insert limiter.
+//! - [`checkpoint`]: atomic, checksummed checkpoints; [`config`]: the TOML presets.
+//! - [`service`]: the learner process (router, ingest, training thread, weights).
+//! - [`metrics`]: TensorBoard event files and `metrics.csv`.
+//! - [`evaluate`], [`viz`]: greedy episodes, plots and the gait animation.
 
 pub mod adam;
 pub mod checkpoint;
 pub mod config;
 pub mod dqn;
+pub mod evaluate;
+pub mod metrics;
 pub mod network;
 
 /// Sets libtorch's intra-op threads. Use 1 unless the learner owns the machine: with two
@@ -22,6 +28,7 @@ pub mod rate;
 pub mod replay;
 pub mod service;
 pub mod sum_tree;
+pub mod viz;
 
 /// Keeps large freed blocks in glibc's heap instead of returning them to the OS at once.
 ///

@@ -29,6 +29,7 @@ use zenoh::sample::SampleKind;
 use crate::checkpoint::{self, Checkpoint, CheckpointError, Progress};
 use crate::config::TrainConfig;
 use crate::dqn::{Batch, Dqn};
+use crate::metrics::MetricsWriter;
 use crate::rate::RateLimiter;
 use crate::replay::{Replay, SampledBatch, StreamId, Transition};
 
@@ -56,6 +57,8 @@ pub struct ServiceOptions {
     pub run_dir: PathBuf,
     /// A checkpoint to continue from (same run).
     pub resume: Option<Checkpoint>,
+    /// A checkpoint of another run whose networks start this one (transfer).
+    pub init_from: Option<Checkpoint>,
     /// Extra zenoh settings as (key, JSON5) pairs, applied last (TLS, access control).
     pub zenoh_overrides: Vec<(String, String)>,
 }
@@ -86,7 +89,16 @@ struct Shared {
     latest_weights: Mutex<Vec<u8>>,
     dropped_batches: AtomicU64,
     evaluation: Mutex<Option<proto::EpisodeStats>>,
+    /// Episodes not yet written to the metrics; bounded by [`MAX_PENDING_EPISODES`].
+    pending_episodes: Mutex<Vec<proto::EpisodeStats>>,
 }
+
+/// Episodes held for the metrics writer, which drains them every second. Beyond this (the
+/// training thread stalled) new episodes are left out of the metrics, not queued.
+const MAX_PENDING_EPISODES: usize = 10_000;
+
+/// How often episodes and the training scalars reach the metrics files.
+const METRICS_EVERY: Duration = Duration::from_secs(1);
 
 fn lock<T>(mutex: &Mutex<T>) -> std::sync::MutexGuard<'_, T> {
     mutex.lock().unwrap_or_else(PoisonError::into_inner)
@@ -125,7 +137,7 @@ pub struct Outcome {
 
 /// Opens the router, serves the run, trains until `stop` or a configured limit.
 pub async fn run(options: ServiceOptions, stop: Arc<AtomicBool>) -> Result<Outcome, ServiceError> {
-    let ServiceOptions { config, run_id, run_dir, resume, zenoh_overrides } = options;
+    let ServiceOptions { config, run_id, run_dir, resume, init_from, zenoh_overrides } = options;
     keys::check_run_id(&run_id).map_err(|e| ServiceError::Setup(e.to_string()))?;
     std::fs::create_dir_all(&run_dir)
         .map_err(|e| ServiceError::Setup(format!("cannot create {}: {e}", run_dir.display())))?;
@@ -239,7 +251,10 @@ pub async fn run(options: ServiceOptions, stop: Arc<AtomicBool>) -> Result<Outco
         let run_id = run_id.clone();
         std::thread::Builder::new()
             .name("training".into())
-            .spawn(move || train(&config, &run_id, &run_dir, resume, &ingest_rx, &weights_tx, &shared, &stop))
+            .spawn(move || {
+                let start = Start { resume, init_from };
+                train(&config, &run_id, &run_dir, start, &ingest_rx, &weights_tx, &shared, &stop)
+            })
             .map_err(|e| ServiceError::Setup(format!("cannot start the training thread: {e}")))?
     };
     while let Some(bytes) = weights_rx.recv().await {
@@ -306,6 +321,12 @@ fn record_status(shared: &Shared, report: proto::ActorStatus) {
 }
 
 fn record_episode(shared: &Shared, stats: proto::EpisodeStats) {
+    {
+        let mut pending = lock(&shared.pending_episodes);
+        if pending.len() < MAX_PENDING_EPISODES {
+            pending.push(stats.clone());
+        }
+    }
     if stats.evaluation {
         info!(speed = stats.speed, distance = stats.distance, weights = stats.weights_version, "evaluation episode");
         *lock(&shared.evaluation) = Some(stats);
@@ -354,6 +375,13 @@ fn ingest_callback(
     }
 }
 
+/// Where training starts: fresh, resumed, or from another run's networks.
+#[derive(Debug, Default)]
+struct Start {
+    resume: Option<Checkpoint>,
+    init_from: Option<Checkpoint>,
+}
+
 /// The training loop. Returns when `stop` is set or a limit is reached, after a final
 /// checkpoint.
 #[allow(clippy::too_many_arguments)]
@@ -361,7 +389,7 @@ fn train(
     config: &TrainConfig,
     run_id: &str,
     run_dir: &Path,
-    resume: Option<Checkpoint>,
+    start: Start,
     ingest: &Receiver<proto::TransitionBatch>,
     weights_out: &tokio::sync::mpsc::Sender<Vec<u8>>,
     shared: &Shared,
@@ -372,7 +400,11 @@ fn train(
     let mut dqn = Dqn::new(config.dqn_config());
     let mut progress = Progress::default();
     let mut replay = None;
-    if let Some(checkpoint) = &resume {
+    if let Some(checkpoint) = &start.init_from {
+        dqn.initialise_from(checkpoint)?;
+        info!(from_run = %checkpoint.meta.run_id, "networks initialised from {}", checkpoint.path.display());
+    }
+    if let Some(checkpoint) = &start.resume {
         dqn.restore(checkpoint)?;
         progress = checkpoint.meta.progress.clone();
         replay = checkpoint::load_replay(checkpoint)?;
@@ -401,6 +433,9 @@ fn train(
     let mut status_clock = Instant::now();
     let mut status_counts = (progress.updates, progress.env_steps);
     let mut actor_transitions: BTreeMap<u32, u64> = BTreeMap::new();
+    let mut metrics = MetricsWriter::create(run_dir).map_err(|e| ServiceError::Setup(e.to_string()))?;
+    let mut metrics_clock = Instant::now();
+    let mut loss_sum = (0.0f64, 0.0f64, 0u64);
 
     // Every checkpoint, periodic or final, records the training time and ε at that moment.
     let save_checkpoint = |dqn: &Dqn, progress: &mut Progress, replay: Option<&Replay>| {
@@ -458,6 +493,7 @@ fn train(
                 rate.record_sample(batch_size);
                 progress.updates += 1;
                 last_loss = (stats.loss, stats.mean_q);
+                loss_sum = (loss_sum.0 + stats.loss, loss_sum.1 + stats.mean_q, loss_sum.2 + 1);
                 if !stats.loss.is_finite() {
                     warn!(updates = progress.updates, "non-finite loss");
                 }
@@ -470,6 +506,23 @@ fn train(
                     last_checkpoint = Some(path);
                 }
             }
+        }
+
+        if metrics_clock.elapsed() >= METRICS_EVERY {
+            let train_seconds = prior_seconds + session_start.elapsed().as_secs_f64();
+            write_episode_metrics(&mut metrics, shared, train_seconds, progress.env_steps);
+            if loss_sum.2 > 0 {
+                let n = loss_sum.2 as f64;
+                let scalars = [("train/loss", loss_sum.0 / n), ("train/mean_q", loss_sum.1 / n)];
+                if let Err(e) = metrics.write(train_seconds, progress.env_steps, &scalars) {
+                    warn!("metrics: {e}");
+                }
+                loss_sum = (0.0, 0.0, 0);
+            }
+            if let Err(e) = metrics.flush() {
+                warn!("metrics: {e}");
+            }
+            metrics_clock = Instant::now();
         }
 
         if status_clock.elapsed().as_secs_f64() >= config.learner.status_every_s {
@@ -503,6 +556,7 @@ fn train(
                 last_evaluation_speed: lock(&shared.evaluation).as_ref().map(|e| e.speed),
             };
             report(&status, run_dir);
+            write_status_metrics(&mut metrics, &status);
             status_clock = Instant::now();
             status_counts = (progress.updates, progress.env_steps);
         }
@@ -512,6 +566,55 @@ fn train(
     let path = save_checkpoint(&dqn, &mut progress, snapshot)?;
     info!(updates = progress.updates, env_steps = progress.env_steps, "final checkpoint {}", path.display());
     Ok(Outcome { progress, last_checkpoint: Some(path) })
+}
+
+/// Every pending episode as scalars: `episode/*` for training actors (also per actor, with
+/// its ε) and `eval/*` for evaluators.
+fn write_episode_metrics(metrics: &mut MetricsWriter, shared: &Shared, train_seconds: f64, env_steps: u64) {
+    let episodes = std::mem::take(&mut *lock(&shared.pending_episodes));
+    for e in episodes {
+        let group = if e.evaluation { "eval" } else { "episode" };
+        let fields = [
+            ("distance", f64::from(e.distance)),
+            ("duration", f64::from(e.duration)),
+            ("return", f64::from(e.episode_return)),
+            ("return_position", f64::from(e.return_position)),
+            ("return_upright", f64::from(e.return_upright)),
+            ("speed", f64::from(e.speed)),
+            ("flips", f64::from(e.flips)),
+        ];
+        let mut tags: Vec<(String, f64)> = fields.iter().map(|(name, v)| (format!("{group}/{name}"), *v)).collect();
+        if !e.evaluation {
+            tags.push((format!("actor/{}/speed", e.actor_id), f64::from(e.speed)));
+            tags.push((format!("actor/{}/epsilon", e.actor_id), e.epsilon));
+        }
+        let scalars: Vec<(&str, f64)> = tags.iter().map(|(t, v)| (t.as_str(), *v)).collect();
+        if let Err(error) = metrics.write(train_seconds, env_steps, &scalars) {
+            warn!("metrics: {error}");
+            return;
+        }
+    }
+}
+
+/// The status report's throughput and health figures as scalars.
+fn write_status_metrics(metrics: &mut MetricsWriter, status: &Status) {
+    let mut scalars = vec![
+        ("throughput/env_steps_per_s", status.env_steps_per_second),
+        ("throughput/updates_per_s", status.updates_per_second),
+        ("replay/size", status.replay_len as f64),
+        ("weights/version", status.weights_version as f64),
+        ("actors/connected", status.connected_actors.len() as f64),
+        ("ingest/dropped_batches", status.dropped_batches as f64),
+        ("ingest/rejected", status.rejected.values().sum::<u64>() as f64),
+        ("progress/physics_steps", status.physics_steps as f64),
+        ("progress/updates", status.updates as f64),
+    ];
+    let ingest: Vec<(String, f64)> =
+        status.ingest_per_second.iter().map(|(id, rate)| (format!("actor/{id}/ingest_per_s"), *rate)).collect();
+    scalars.extend(ingest.iter().map(|(t, v)| (t.as_str(), *v)));
+    if let Err(e) = metrics.write(status.elapsed_s, status.env_steps, &scalars).and_then(|()| metrics.flush()) {
+        warn!("metrics: {e}");
+    }
 }
 
 fn mean_epsilon(shared: &Shared) -> f64 {

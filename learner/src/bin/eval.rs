@@ -6,12 +6,8 @@
 
 use std::path::PathBuf;
 
-use anyhow::Context;
 use clap::Parser;
-use crawler_actor::env::{Crawler, EpisodeSummary, OBS_DIM};
-use crawler_actor::policy::MlpPolicy;
-use crawler_learner::checkpoint;
-use crawler_learner::config::TrainConfig;
+use crawler_learner::evaluate::{evaluation_env, greedy_episode, load_policy};
 use serde::Serialize;
 use tracing::info;
 
@@ -61,32 +57,14 @@ fn mean_std(values: impl Iterator<Item = f64> + Clone) -> MeanStd {
 fn main() -> anyhow::Result<()> {
     crawler_actor::cli::init_logging();
     let args = Args::parse();
-    let loaded = checkpoint::load(&args.checkpoint)?;
-    let config = TrainConfig::from_json(&loaded.meta.config, "the checkpoint's config", &args.overrides)?;
-    let weights = std::fs::read(loaded.path.join("weights.safetensors"))
-        .with_context(|| format!("reading {}", loaded.path.display()))?;
-    let policy = MlpPolicy::from_safetensors(&weights, &loaded.meta.network)?;
-    let mut env = config.env.clone();
-    let steps = (args.seconds / env.dt).round() as u32;
-    anyhow::ensure!(steps > 0, "--seconds {} is less than one physics step", args.seconds);
-    env.max_episode_steps = steps;
-    env.min_episode_steps = steps;
+    let loaded = load_policy(&args.checkpoint, &args.overrides)?;
+    let env = evaluation_env(&loaded.config.env, args.seconds)?;
     info!(checkpoint = %loaded.path.display(), updates = loaded.meta.progress.updates, "evaluating");
 
     let mut episodes = Vec::new();
-    let mut actions = Vec::new();
-    let mut observation = [0.0f32; OBS_DIM];
     for i in 0..args.episodes {
         let seed = args.seed + i;
-        let mut crawler = Crawler::new(env.clone(), seed);
-        let summary: EpisodeSummary = loop {
-            crawler.observe(&mut observation);
-            policy.greedy_actions(&observation, &mut actions)?;
-            let outcome = crawler.step(actions[0]);
-            if outcome.done() {
-                break crawler.episode_summary(Some(outcome));
-            }
-        };
+        let (summary, _) = greedy_episode(&loaded.policy, &env, seed, false)?;
         episodes.push(Episode {
             seed,
             speed: summary.speed,
@@ -120,6 +98,10 @@ fn main() -> anyhow::Result<()> {
         "env_steps": loaded.meta.progress.env_steps,
         "physics_steps": loaded.meta.progress.physics_steps,
         "train_seconds": loaded.meta.progress.train_seconds,
+        "network": loaded.meta.network,
+        "action_repeat": env.action_repeat,
+        "direction": env.direction,
+        "seconds": args.seconds,
         "episodes": episodes,
         "speed": speed,
         "distance": distance,

@@ -32,6 +32,11 @@ struct Args {
     /// Continue run RUN from its newest checkpoint, with the config it was started with.
     #[arg(long, value_name = "RUN")]
     resume: Option<String>,
+    /// Start a new run from another run's weights (transfer, e.g. backward from a forward
+    /// checkpoint): a checkpoint directory or a directory of them (the newest). The online and
+    /// target networks are copied; the optimiser, replay and counters start fresh.
+    #[arg(long, value_name = "CHECKPOINT", conflicts_with = "resume")]
+    init_from: Option<PathBuf>,
     /// Extra zenoh settings, KEY=JSON5 (TLS, access control).
     #[arg(long = "zenoh", value_name = "KEY=JSON5", value_delimiter = ';')]
     zenoh: Vec<String>,
@@ -66,6 +71,22 @@ fn main() -> anyhow::Result<()> {
         );
     }
     let zenoh_overrides = crawler_actor::cli::zenoh_overrides(&args.zenoh).map_err(anyhow::Error::msg)?;
+    let init_from = match &args.init_from {
+        Some(path) => {
+            let checkpoint =
+                checkpoint::load(path).with_context(|| format!("--init-from {}", path.display()))?;
+            if checkpoint.meta.network != config.network_spec() {
+                bail!(
+                    "--init-from {}: its network {:?} differs from this config's {:?}; set network.* to match",
+                    path.display(),
+                    checkpoint.meta.network,
+                    config.network_spec()
+                );
+            }
+            Some(checkpoint)
+        }
+        None => None,
+    };
 
     let stop = Arc::new(AtomicBool::new(false));
     let runtime = tokio::runtime::Builder::new_multi_thread()
@@ -85,7 +106,8 @@ fn main() -> anyhow::Result<()> {
         }
         info!(count = args.actors, endpoint = %local_endpoint, "started local actors");
     }
-    let options = ServiceOptions { config, run_id: run_id.clone(), run_dir: run_dir.clone(), resume, zenoh_overrides };
+    let options =
+        ServiceOptions { config, run_id: run_id.clone(), run_dir: run_dir.clone(), resume, init_from, zenoh_overrides };
     let outcome = runtime.block_on(async {
         tokio::spawn(crawler_actor::node::stop_on_signal(Arc::clone(&stop)));
         service::run(options, Arc::clone(&stop)).await

@@ -1,0 +1,87 @@
+//! Greedy episodes of a checkpoint's policy, shared by `eval`, `plot` and `render`.
+//!
+//! The policy runs in plain Rust (the actors' [`MlpPolicy`]) over the checkpoint's weights,
+//! so evaluation measures exactly what actors would do.
+
+use std::path::{Path, PathBuf};
+
+use crawler_actor::env::{Crawler, EnvConfig, EpisodeSummary, OBS_DIM, PoseFrame};
+use crawler_actor::policy::{MlpPolicy, PolicyError};
+
+use crate::checkpoint::{self, CheckpointError, CheckpointMeta};
+use crate::config::{ConfigError, TrainConfig};
+
+#[derive(Debug, thiserror::Error)]
+pub enum EvaluateError {
+    #[error(transparent)]
+    Checkpoint(#[from] CheckpointError),
+    #[error(transparent)]
+    Config(#[from] ConfigError),
+    #[error("{path}: {source}")]
+    Io { path: PathBuf, source: std::io::Error },
+    #[error("the checkpoint's weights do not fit its network: {0}")]
+    Policy(#[from] PolicyError),
+    #[error("{0}")]
+    Episode(String),
+}
+
+/// A checkpoint ready to act: its config (with overrides applied) and its greedy policy.
+#[derive(Debug)]
+pub struct LoadedPolicy {
+    pub path: PathBuf,
+    pub meta: CheckpointMeta,
+    pub config: TrainConfig,
+    pub policy: MlpPolicy,
+}
+
+/// Loads `path` (a `step-…` directory, or a directory of them: the newest) and applies
+/// `overrides` (`KEY=VALUE`, e.g. `env.direction=backward`) to its stored config.
+pub fn load_policy(path: &Path, overrides: &[String]) -> Result<LoadedPolicy, EvaluateError> {
+    let loaded = checkpoint::load(path)?;
+    let config = TrainConfig::from_json(&loaded.meta.config, "the checkpoint's config", overrides)?;
+    let weights_path = loaded.path.join("weights.safetensors");
+    let weights =
+        std::fs::read(&weights_path).map_err(|source| EvaluateError::Io { path: weights_path.clone(), source })?;
+    let policy = MlpPolicy::from_safetensors(&weights, &loaded.meta.network)?;
+    Ok(LoadedPolicy { path: loaded.path, meta: loaded.meta, config, policy })
+}
+
+/// The env of `config` set to run exactly `seconds` of simulated time (the progress rule
+/// does not cut evaluation episodes short).
+pub fn evaluation_env(config: &EnvConfig, seconds: f32) -> Result<EnvConfig, EvaluateError> {
+    let steps = (seconds / config.dt).round();
+    if !(steps >= 1.0 && steps <= u32::MAX as f32) {
+        return Err(EvaluateError::Episode(format!(
+            "{seconds} s is not a usable episode length at dt = {} s",
+            config.dt
+        )));
+    }
+    let mut env = config.clone();
+    env.max_episode_steps = steps as u32;
+    env.min_episode_steps = steps as u32;
+    Ok(env)
+}
+
+/// One greedy (ε = 0) episode from the start pose drawn with `seed`; with `record`, every
+/// physics step's pose.
+pub fn greedy_episode(
+    policy: &MlpPolicy,
+    env: &EnvConfig,
+    seed: u64,
+    record: bool,
+) -> Result<(EpisodeSummary, Vec<PoseFrame>), EvaluateError> {
+    let mut crawler = Crawler::new(env.clone(), seed);
+    crawler.set_recording(record);
+    let mut observation = [0.0f32; OBS_DIM];
+    let mut actions = Vec::with_capacity(1);
+    loop {
+        crawler.observe(&mut observation);
+        policy.greedy_actions(&observation, &mut actions)?;
+        let action = *actions.first().ok_or_else(|| EvaluateError::Episode("the policy chose no action".into()))?;
+        let outcome = crawler.step(action);
+        if outcome.done() {
+            let summary = crawler.episode_summary(Some(outcome));
+            return Ok((summary, crawler.recorded_frames().to_vec()));
+        }
+    }
+}
