@@ -435,7 +435,7 @@ fn train(
     let mut actor_transitions: BTreeMap<u32, u64> = BTreeMap::new();
     let mut metrics = MetricsWriter::create(run_dir).map_err(|e| ServiceError::Setup(e.to_string()))?;
     let mut metrics_clock = Instant::now();
-    let mut loss_sum = (0.0f64, 0.0f64, 0u64);
+    let mut losses = LossAverage::default();
 
     // Every checkpoint, periodic or final, records the training time and ε at that moment.
     let save_checkpoint = |dqn: &Dqn, progress: &mut Progress, replay: Option<&Replay>| {
@@ -493,7 +493,7 @@ fn train(
                 rate.record_sample(batch_size);
                 progress.updates += 1;
                 last_loss = (stats.loss, stats.mean_q);
-                loss_sum = (loss_sum.0 + stats.loss, loss_sum.1 + stats.mean_q, loss_sum.2 + 1);
+                losses.add(stats.loss, stats.mean_q);
                 if !stats.loss.is_finite() {
                     warn!(updates = progress.updates, "non-finite loss");
                 }
@@ -510,18 +510,7 @@ fn train(
 
         if metrics_clock.elapsed() >= METRICS_EVERY {
             let train_seconds = prior_seconds + session_start.elapsed().as_secs_f64();
-            write_episode_metrics(&mut metrics, shared, train_seconds, progress.env_steps);
-            if loss_sum.2 > 0 {
-                let n = loss_sum.2 as f64;
-                let scalars = [("train/loss", loss_sum.0 / n), ("train/mean_q", loss_sum.1 / n)];
-                if let Err(e) = metrics.write(train_seconds, progress.env_steps, &scalars) {
-                    warn!("metrics: {e}");
-                }
-                loss_sum = (0.0, 0.0, 0);
-            }
-            if let Err(e) = metrics.flush() {
-                warn!("metrics: {e}");
-            }
+            flush_metrics(&mut metrics, shared, &mut losses, train_seconds, progress.env_steps);
             metrics_clock = Instant::now();
         }
 
@@ -562,10 +551,54 @@ fn train(
         }
     }
 
+    // What arrived since the last flush still reaches the metrics.
+    let train_seconds = prior_seconds + session_start.elapsed().as_secs_f64();
+    flush_metrics(&mut metrics, shared, &mut losses, train_seconds, progress.env_steps);
+
     let snapshot = config.learner.snapshot_replay.then_some(&replay);
     let path = save_checkpoint(&dqn, &mut progress, snapshot)?;
     info!(updates = progress.updates, env_steps = progress.env_steps, "final checkpoint {}", path.display());
     Ok(Outcome { progress, last_checkpoint: Some(path) })
+}
+
+/// TD loss and mean Q, averaged between metric writes.
+#[derive(Debug, Default)]
+struct LossAverage {
+    loss: f64,
+    mean_q: f64,
+    count: u64,
+}
+
+impl LossAverage {
+    fn add(&mut self, loss: f64, mean_q: f64) {
+        self.loss += loss;
+        self.mean_q += mean_q;
+        self.count += 1;
+    }
+}
+
+/// Writes pending episodes and the averaged loss, then flushes, so a reader (TensorBoard,
+/// `plot`) sees everything up to now. Metrics are best effort: a failure is logged, and
+/// training goes on.
+fn flush_metrics(
+    metrics: &mut MetricsWriter,
+    shared: &Shared,
+    losses: &mut LossAverage,
+    train_seconds: f64,
+    env_steps: u64,
+) {
+    write_episode_metrics(metrics, shared, train_seconds, env_steps);
+    if losses.count > 0 {
+        let n = losses.count as f64;
+        let scalars = [("train/loss", losses.loss / n), ("train/mean_q", losses.mean_q / n)];
+        if let Err(e) = metrics.write(train_seconds, env_steps, &scalars) {
+            warn!("metrics: {e}");
+        }
+        *losses = LossAverage::default();
+    }
+    if let Err(e) = metrics.flush() {
+        warn!("metrics: {e}");
+    }
 }
 
 /// Every pending episode as scalars: `episode/*` for training actors (also per actor, with

@@ -2,7 +2,10 @@
 //! `cargo build --release --bins && cargo bench -p crawler-tests --bench learning_speed`
 //!
 //! Environment: `MINUTES` of training (default 20), `SEED` (default 0), `CONFIG` (default
-//! configs/default.toml), `EVAL_EVERY_S` (default 30). About every `EVAL_EVERY_S` seconds the
+//! configs/default.toml), `EVAL_EVERY_S` (default 30), `SET` (extra `KEY=VALUE` settings,
+//! separated by `;`, e.g. `env.direction="backward"`), `INIT_FROM` (a checkpoint to start
+//! from: transfer), `RUNS_DIR` and `RUN` (keep the run there, with its metrics and an
+//! `evaluations.json`; by default it lives in a temporary directory). About every `EVAL_EVERY_S` seconds the
 //! newest checkpoint is run for 10 greedy episodes of 20 s (`eval`). Prints each evaluation,
 //! the wall time of training to the first evaluation ≥ 0.5 m/s, the speed at 20 and 60
 //! minutes, and the env steps and updates done. Evaluation shares the machine with training,
@@ -19,6 +22,7 @@ fn env_or<T: std::str::FromStr>(name: &str, default: T) -> T {
     std::env::var(name).ok().and_then(|v| v.parse().ok()).unwrap_or(default)
 }
 
+#[derive(serde::Serialize)]
 struct Evaluation {
     train_seconds: f64,
     updates: u64,
@@ -48,7 +52,10 @@ fn main() {
     let seed: u64 = env_or("SEED", 0);
     let config: String = env_or("CONFIG", "configs/default.toml".to_string());
     let eval_every: f64 = env_or("EVAL_EVERY_S", 30.0);
-    let runs = tempfile::tempdir().unwrap();
+    let temporary = tempfile::tempdir().unwrap();
+    let runs_dir: PathBuf = std::env::var_os("RUNS_DIR").map_or_else(|| temporary.path().to_path_buf(), PathBuf::from);
+    let run: String = env_or("RUN", "speed".to_string());
+    let set: String = env_or("SET", String::new());
     let settings = [
         format!("learner.max_seconds={}", minutes * 60.0),
         "learner.checkpoint_every=2000".into(),
@@ -57,13 +64,19 @@ fn main() {
         format!("dqn.seed={seed}"),
         format!("actor.seed={}", seed * 100_000),
     ];
+    let settings: Vec<String> =
+        settings.into_iter().chain(set.split(';').map(str::trim).filter(|s| !s.is_empty()).map(String::from)).collect();
     let mut extra = Vec::new();
     for setting in &settings {
         extra.extend(["--set", setting.as_str()]);
     }
-    let mut learner = Learner::start_with(&config, runs.path(), "speed", 2, &extra);
-    let checkpoints = runs.path().join("speed/checkpoints");
-    println!("config {config}, seed {seed}, {minutes} min");
+    let init_from = std::env::var("INIT_FROM").ok();
+    if let Some(path) = &init_from {
+        extra.extend(["--init-from", path.as_str()]);
+    }
+    let mut learner = Learner::start_with(&config, &runs_dir, &run, 2, &extra);
+    let checkpoints = runs_dir.join(&run).join("checkpoints");
+    println!("config {config}, seed {seed}, {minutes} min, settings {settings:?}, init from {init_from:?}");
     println!(
         "{:>8} {:>10} {:>12} {:>14} {:>16} {:>6}",
         "train s", "updates", "env steps", "physics steps", "speed m/s", "flips"
@@ -112,6 +125,9 @@ fn main() {
             _ => println!("speed at {mark} min: not reached (run with MINUTES={mark})"),
         }
     }
+    let record = serde_json::json!({ "config": config, "seed": seed, "minutes": minutes, "settings": settings,
+        "init_from": init_from, "evaluations": evaluations });
+    std::fs::write(runs_dir.join(&run).join("evaluations.json"), serde_json::to_vec_pretty(&record).unwrap()).unwrap();
     if let Some(e) = evaluations.last() {
         println!(
             "done: {} env steps, {} physics steps, {} updates in {:.0} s",

@@ -9,11 +9,16 @@ use std::path::{Path, PathBuf};
 use std::process::{Child, Command, ExitStatus, Stdio};
 use std::time::{Duration, Instant};
 
-/// A workspace binary of the same profile as the running test or bench.
+/// A workspace binary of the same profile as the running test or bench, or from
+/// `CRAWLER_BIN_DIR` when set (long experiments run from a copy, so rebuilding the workspace
+/// meanwhile does not swap binaries under them).
 pub fn binary(name: &str) -> PathBuf {
     let exe = std::env::current_exe().unwrap();
     // Tests and benches run from <target>/<profile>/deps/.
-    let dir = exe.parent().and_then(Path::parent).unwrap();
+    let dir = match std::env::var_os("CRAWLER_BIN_DIR") {
+        Some(dir) => PathBuf::from(dir),
+        None => exe.parent().and_then(Path::parent).unwrap().to_path_buf(),
+    };
     let path = dir.join(name);
     assert!(path.exists(), "{} is missing: run `cargo build --workspace --bins` (scripts/test does)", path.display());
     path

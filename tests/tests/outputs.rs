@@ -1,0 +1,164 @@
+//! What a user looks at: metrics files, plots, the gait animation, evaluation of any
+//! checkpoint, and transfer from another run's weights.
+
+#![allow(clippy::unwrap_used)]
+
+use std::collections::BTreeSet;
+use std::path::Path;
+use std::process::{Command, Output};
+use std::time::Duration;
+
+use crawler_learner::checkpoint::{self, Progress};
+use crawler_learner::config::TrainConfig;
+use crawler_learner::dqn::Dqn;
+use crawler_learner::metrics;
+use crawler_tests::{Learner, binary, repo_root};
+
+fn run(binary_name: &str, args: &[&str]) -> Output {
+    let output = Command::new(binary(binary_name)).current_dir(repo_root()).args(args).output().unwrap();
+    assert!(
+        output.status.success(),
+        "{binary_name} {args:?} failed: {}",
+        String::from_utf8_lossy(&output.stderr)
+    );
+    output
+}
+
+fn png_size(path: &Path) -> (u32, u32) {
+    let decoder = png::Decoder::new(std::io::BufReader::new(std::fs::File::open(path).unwrap()));
+    let mut reader = decoder.read_info().unwrap();
+    let mut buffer = vec![0; reader.output_buffer_size().unwrap()];
+    let info = reader.next_frame(&mut buffer).unwrap();
+    (info.width, info.height)
+}
+
+#[test]
+fn a_run_writes_metrics_that_plot_and_render_turn_into_pictures() {
+    let runs = tempfile::tempdir().unwrap();
+    let mut learner = Learner::start(runs.path(), "pictures", 2, &[]);
+    learner.wait_for(Duration::from_secs(180), "episodes of both actors and some updates", |s| {
+        (0..2).all(|id| crawler_tests::u64_at(s, &format!("/actors/{id}/episodes")) >= 2)
+            && crawler_tests::u64_at(s, "/updates") > 0
+    });
+    let exit = learner.terminate(Duration::from_secs(60));
+    assert!(exit.success(), "{exit}");
+    let run_dir = runs.path().join("pictures");
+
+    // TensorBoard event files parse (lengths and CRCs checked) and hold every scalar family.
+    let event_files = metrics::event_files(&run_dir);
+    assert_eq!(event_files.len(), 1, "{event_files:?}");
+    let events = metrics::read_events(&event_files[0]).unwrap();
+    let tags: BTreeSet<&str> = events.iter().map(|s| s.tag.as_str()).collect();
+    for tag in [
+        "episode/distance",
+        "episode/duration",
+        "episode/return",
+        "episode/return_position",
+        "episode/return_upright",
+        "episode/speed",
+        "train/loss",
+        "train/mean_q",
+        "throughput/env_steps_per_s",
+        "throughput/updates_per_s",
+        "replay/size",
+        "weights/version",
+        "actors/connected",
+        "actor/0/epsilon",
+        "actor/1/epsilon",
+    ] {
+        assert!(tags.contains(tag), "{tag} missing from the event file: {tags:?}");
+    }
+    assert!(events.iter().all(|s| s.value.is_finite()));
+    // Steps are env steps, so they never go backwards.
+    assert!(events.windows(2).all(|w| w[0].env_steps <= w[1].env_steps));
+    // Every event-file scalar is in the CSV too.
+    let csv = metrics::read_csv(&run_dir.join("metrics.csv")).unwrap();
+    assert!(csv.len() >= events.len(), "{} CSV rows, {} event scalars", csv.len(), events.len());
+    // ε per actor is the ladder's: actor 0 explores more than actor 1.
+    let epsilon = |id: u32| csv.iter().rev().find(|s| s.tag == format!("actor/{id}/epsilon")).unwrap().value;
+    assert!(epsilon(0) > epsilon(1), "ε0 {} ε1 {}", epsilon(0), epsilon(1));
+
+    let plots = runs.path().join("plots");
+    let output = run("plot", &[run_dir.to_str().unwrap(), "--out", plots.to_str().unwrap()]);
+    let written: Vec<String> = String::from_utf8(output.stdout).unwrap().lines().map(String::from).collect();
+    assert_eq!(written.len(), 3, "{written:?}");
+    assert_eq!(png_size(&plots.join("learning_curves.png")), (960, 900));
+    assert_eq!(png_size(&plots.join("training.png")), (960, 1200));
+    assert_eq!(png_size(&plots.join("joint_angles.png")), (960, 400));
+
+    let gif_path = runs.path().join("gait.gif");
+    let checkpoints = run_dir.join("checkpoints");
+    let output = run(
+        "render",
+        &[checkpoints.to_str().unwrap(), "--out", gif_path.to_str().unwrap(), "--seconds", "2", "--fps", "25"],
+    );
+    let report: serde_json::Value = serde_json::from_slice(&output.stdout).unwrap();
+    let mut options = gif::DecodeOptions::new();
+    options.set_color_output(gif::ColorOutput::Indexed);
+    let mut decoder = options.read_info(std::fs::File::open(&gif_path).unwrap()).unwrap();
+    assert_eq!((decoder.width(), decoder.height()), (640, 360));
+    let mut frames = 0;
+    while let Some(frame) = decoder.read_next_frame().unwrap() {
+        assert_eq!(frame.delay, 4, "25 fps is 4 hundredths of a second a frame");
+        frames += 1;
+    }
+    // 2 s at 25 fps, plus the pose at t = 0.
+    assert_eq!(frames, 51);
+    assert_eq!(report["frames"], 51);
+}
+
+#[test]
+fn eval_runs_a_checkpoint_in_the_studys_layout() {
+    // A checkpoint as the study's own policy would need: action repeat 1, 40 inputs,
+    // 25 actions, hidden 512-256-128.
+    let config = TrainConfig::load(&repo_root().join("configs/study.toml"), &[]).unwrap();
+    let dqn = Dqn::new(config.dqn_config());
+    let dir = tempfile::tempdir().unwrap();
+    let config_json = serde_json::to_value(&config).unwrap();
+    checkpoint::save(dir.path(), &dqn, "study", &Progress::default(), &config_json, None, 1).unwrap();
+
+    let eval = || {
+        let output = run("eval", &[dir.path().to_str().unwrap(), "--episodes", "2", "--seconds", "0.5"]);
+        serde_json::from_slice::<serde_json::Value>(&output.stdout).unwrap()
+    };
+    let report = eval();
+    assert_eq!(report["network"]["obs_dim"], 40);
+    assert_eq!(report["network"]["num_actions"], 25);
+    assert_eq!(report["network"]["hidden"], serde_json::json!([512, 256, 128]));
+    assert_eq!(report["action_repeat"], 1);
+    assert_eq!(report["episodes"].as_array().unwrap().len(), 2);
+    assert!((report["episodes"][1]["duration"].as_f64().unwrap() - 0.5).abs() < 1e-3);
+    assert_eq!(report, eval(), "deterministic for fixed seeds");
+}
+
+#[test]
+fn init_from_copies_another_runs_networks_and_refuses_a_different_one() {
+    let runs = tempfile::tempdir().unwrap();
+    let mut source = Learner::start(runs.path(), "forward", 2, &["--set", "learner.max_updates=200"]);
+    assert!(source.wait_for_exit(Duration::from_secs(180)).success());
+    let source_checkpoint = checkpoint::load(&runs.path().join("forward/checkpoints")).unwrap();
+
+    // No actors and a one-second budget: no update happens, so the final checkpoint holds
+    // exactly the networks it started from, with fresh counters.
+    let from = runs.path().join("forward/checkpoints");
+    let args = ["--init-from", from.to_str().unwrap(), "--set", "learner.max_seconds=1", "--set", "env.direction=\"backward\""];
+    let mut transfer = Learner::start(runs.path(), "backward", 0, &args);
+    assert!(transfer.wait_for_exit(Duration::from_secs(60)).success());
+    let transferred = checkpoint::load(&runs.path().join("backward/checkpoints")).unwrap();
+    assert_eq!(transferred.online, source_checkpoint.online);
+    assert_eq!(transferred.target, source_checkpoint.target);
+    assert_eq!(transferred.meta.progress.updates, 0);
+    assert_eq!(transferred.meta.run_id, "backward");
+    assert_eq!(transferred.meta.config["env"]["direction"], "backward");
+
+    // Another network shape is refused, naming the setting to change.
+    let output = Command::new(binary("learner"))
+        .current_dir(repo_root())
+        .args(["--config", "configs/smoke.toml", "--actors", "0", "--init-from", from.to_str().unwrap()])
+        .args(["--set", "network.hidden=[8]", "--set", &format!("learner.runs_dir=\"{}\"", runs.path().display())])
+        .output()
+        .unwrap();
+    assert!(!output.status.success());
+    let message = String::from_utf8_lossy(&output.stderr);
+    assert!(message.contains("--init-from") && message.contains("network"), "{message}");
+}
