@@ -1,9 +1,11 @@
 //! Pieces both binaries (`actor`, `learner`) share.
 
-/// Logs go to stderr through `tracing`, filtered by `RUST_LOG` (default: info, zenoh warn).
+/// Logs go to stderr through `tracing`, filtered by `RUST_LOG` (default: info, zenoh warn),
+/// coloured only when stderr is a terminal (log files and `docker logs` stay plain).
 pub fn init_logging() {
     tracing_subscriber::fmt()
         .with_writer(std::io::stderr)
+        .with_ansi(std::io::IsTerminal::is_terminal(&std::io::stderr()))
         .with_env_filter(
             tracing_subscriber::EnvFilter::try_from_default_env().unwrap_or_else(|_| "info,zenoh=warn".into()),
         )

@@ -166,6 +166,7 @@ pub async fn run(options: ActorOptions, stop: Arc<AtomicBool>) -> Result<(), Nod
     };
 
     // A starting actor asks for the latest weights rather than waiting for the next publish.
+    let joined = Instant::now();
     let mut waited = Instant::now();
     while policy_rx.borrow().is_none() && !stop.load(Ordering::SeqCst) {
         if let Ok(replies) = session.get(keys::weights(&run_id)).timeout(Duration::from_secs(2)).await {
@@ -182,6 +183,10 @@ pub async fn run(options: ActorOptions, stop: Arc<AtomicBool>) -> Result<(), Nod
             }
             tokio::time::sleep(Duration::from_millis(200)).await;
         }
+    }
+
+    if let Some(policy) = policy_rx.borrow().as_ref() {
+        info!(version = policy.version, after_ms = joined.elapsed().as_millis() as u64, "first weights");
     }
 
     let transitions = session

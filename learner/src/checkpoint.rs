@@ -38,6 +38,17 @@ const REPLAY: &str = "replay.bin";
 const PREFIX: &str = "step-";
 const TEMP_MARKER: &str = ".partial-";
 
+/// Test hook: with `CRAWLER_FAULT_CHECKPOINT_PAUSE_MS` set, every save waits that long with
+/// its files written but not yet renamed into place, so a test can kill the process in the
+/// middle of a checkpoint. Unset, it costs one environment lookup per checkpoint.
+const FAULT_PAUSE_VARIABLE: &str = "CRAWLER_FAULT_CHECKPOINT_PAUSE_MS";
+
+fn pause_for_fault_injection() {
+    if let Some(ms) = std::env::var(FAULT_PAUSE_VARIABLE).ok().and_then(|v| v.parse::<u64>().ok()) {
+        std::thread::sleep(std::time::Duration::from_millis(ms));
+    }
+}
+
 #[derive(Debug, thiserror::Error)]
 pub enum CheckpointError {
     #[error("cannot {action} {path}: {source}")]
@@ -181,6 +192,7 @@ pub fn save(
     let json = serde_json::to_vec_pretty(&meta).map_err(|e| corrupt(&temp.join(META), e))?;
     write_synced(&temp.join(META), &|w| w.write_all(&json))?;
 
+    pause_for_fault_injection();
     if final_path.exists() {
         fs::remove_dir_all(&final_path).map_err(io("replace", &final_path))?;
     }

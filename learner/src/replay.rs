@@ -199,6 +199,14 @@ impl Replay {
         self.transitions == 0
     }
 
+    /// Whether every stored observation and reward is finite (an audit for tests and
+    /// diagnostics: ingest validation should make this always true).
+    pub fn all_finite(&self) -> bool {
+        let slots = self.filled.min(self.config.capacity);
+        self.observations[..slots * self.obs_dim].iter().all(|v| v.is_finite())
+            && self.rewards[..slots].iter().all(|v| v.is_finite())
+    }
+
     /// Transitions ever inserted.
     pub fn total_inserted(&self) -> u64 {
         self.inserted

@@ -407,6 +407,11 @@ fn train(
     if let Some(checkpoint) = &start.resume {
         dqn.restore(checkpoint)?;
         progress = checkpoint.meta.progress.clone();
+        // After a crash, versions up to one checkpoint interval past this checkpoint's may
+        // have been published already; skip past them, so that every version number names one
+        // set of weights and actors (which take only newer versions) accept the next publish.
+        let published_between_checkpoints = config.learner.checkpoint_every / config.learner.weights_every.max(1);
+        progress.weights_version += published_between_checkpoints + 1;
         replay = checkpoint::load_replay(checkpoint)?;
         info!(
             updates = progress.updates,

@@ -59,8 +59,21 @@ impl Learner {
         Self::launch(&["--resume", run], runs_dir, run, actors, extra)
     }
 
+    /// `learner --resume <run>` on a given port (actors connected to it reconnect).
+    pub fn resume_on(port: u16, runs_dir: &Path, run: &str, actors: usize, extra: &[&str]) -> Self {
+        Self::launch_on(port, &["--resume", run], runs_dir, run, actors, extra)
+    }
+
+    /// Like [`Learner::start_with`] on a given port.
+    pub fn start_on(port: u16, config: &str, runs_dir: &Path, run: &str, actors: usize, extra: &[&str]) -> Self {
+        Self::launch_on(port, &["--config", config, "--run", run], runs_dir, run, actors, extra)
+    }
+
     fn launch(mode: &[&str], runs_dir: &Path, run: &str, actors: usize, extra: &[&str]) -> Self {
-        let port = free_port();
+        Self::launch_on(free_port(), mode, runs_dir, run, actors, extra)
+    }
+
+    fn launch_on(port: u16, mode: &[&str], runs_dir: &Path, run: &str, actors: usize, extra: &[&str]) -> Self {
         let listen = format!("learner.listen=[\"tcp/127.0.0.1:{port}\"]");
         let runs = format!("learner.runs_dir=\"{}\"", runs_dir.display());
         let mut command = Command::new(binary("learner"));
@@ -140,9 +153,81 @@ impl Learner {
     }
 }
 
+/// Sends `signal` (e.g. "KILL", "TERM") to `pid`.
+pub fn signal(pid: u32, signal: &str) {
+    Command::new("kill").args([&format!("-{signal}"), &pid.to_string()]).status().unwrap();
+}
+
+/// An actor process started on its own (not by the learner), logging at info level to a
+/// file; killed if the test ends early.
+#[derive(Debug)]
+pub struct Actor {
+    pub child: Child,
+    pub log: PathBuf,
+}
+
+impl Actor {
+    /// `actor --connect tcp/127.0.0.1:<port> --id <id> --run <run>`, its log in `log_dir`.
+    pub fn start(port: u16, id: u32, run: &str, log_dir: &Path) -> Self {
+        let log = log_dir.join(format!("actor-{id}-{}.log", std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).unwrap().as_nanos()));
+        let file = std::fs::File::create(&log).unwrap();
+        let child = Command::new(binary("actor"))
+            .args(["--connect", &format!("tcp/127.0.0.1:{port}"), "--id", &id.to_string(), "--run", run])
+            .env("RUST_LOG", "info,zenoh=warn")
+            .stdout(Stdio::null())
+            .stderr(file)
+            .spawn()
+            .unwrap();
+        Self { child, log }
+    }
+
+    /// The log so far.
+    pub fn log_text(&self) -> String {
+        std::fs::read_to_string(&self.log).unwrap_or_default()
+    }
+
+    /// Whether the process is still running.
+    pub fn is_running(&mut self) -> bool {
+        matches!(self.child.try_wait(), Ok(None))
+    }
+
+    /// Polls the log until a line contains `needle`; returns that line.
+    pub fn wait_for_log(&mut self, timeout: Duration, needle: &str) -> String {
+        let start = Instant::now();
+        loop {
+            if let Some(line) = self.log_text().lines().find(|l| l.contains(needle)) {
+                return line.to_string();
+            }
+            assert!(self.is_running(), "actor exited before logging {needle:?}: {}", self.log_text());
+            assert!(start.elapsed() < timeout, "no {needle:?} in the actor's log after {timeout:?}: {}", self.log_text());
+            std::thread::sleep(Duration::from_millis(50));
+        }
+    }
+}
+
+impl Drop for Actor {
+    fn drop(&mut self) {
+        if matches!(self.child.try_wait(), Ok(None)) {
+            let _ = self.child.kill();
+            let _ = self.child.wait();
+        }
+    }
+}
+
+/// The number after `key=` in a log line (`version=12`), if any.
+pub fn log_field(line: &str, key: &str) -> Option<u64> {
+    let start = line.find(&format!("{key}="))? + key.len() + 1;
+    line[start..].chars().take_while(char::is_ascii_digit).collect::<String>().parse().ok()
+}
+
 impl Drop for Learner {
     fn drop(&mut self) {
         if matches!(self.child.try_wait(), Ok(None)) {
+            // Its actors too: killed, the learner cannot reap them, and actors outlive a
+            // learner on purpose (they wait for it to come back).
+            for child in children_of(self.child.id()) {
+                let _ = Command::new("kill").args(["-KILL", &child.to_string()]).status();
+            }
             let _ = self.child.kill();
             let _ = self.child.wait();
         }

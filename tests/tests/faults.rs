@@ -1,0 +1,215 @@
+//! Faults with real processes: actors and learners killed with SIGKILL, a process publishing
+//! bad input while training runs, and a kill in the middle of a checkpoint write.
+
+#![allow(clippy::unwrap_used)]
+
+use std::process::Command;
+use std::time::{Duration, Instant};
+
+use crawler_learner::checkpoint;
+use crawler_tests::{Actor, Learner, binary, free_port, log_field, signal, u64_at};
+
+const SMOKE: &str = "configs/smoke.toml";
+
+#[test]
+fn an_actor_killed_with_sigkill_leaves_training_going_and_a_restart_gets_the_latest_weights() {
+    let runs = tempfile::tempdir().unwrap();
+    let port = free_port();
+    let mut learner = Learner::start_on(port, SMOKE, runs.path(), "kill-actor", 0, &[]);
+    let mut actors: Vec<Actor> = (0..2).map(|id| Actor::start(port, id, "kill-actor", runs.path())).collect();
+    learner.wait_for(Duration::from_secs(120), "both actors training", |s| {
+        (0..2).all(|id| u64_at(s, &format!("/actors/{id}/transitions")) > 0) && u64_at(s, "/updates") > 50
+    });
+
+    signal(actors[1].child.id(), "KILL");
+    let _ = actors[1].child.wait();
+    let status = learner.wait_for(Duration::from_secs(30), "the dead actor to leave", |s| {
+        s["connected_actors"] == serde_json::json!([0])
+    });
+    let updates = u64_at(&status, "/updates");
+    let transitions = u64_at(&status, "/actors/0/transitions");
+    learner.wait_for(Duration::from_secs(60), "training to go on with one actor", |s| {
+        u64_at(s, "/updates") > updates + 50 && u64_at(s, "/actors/0/transitions") > transitions
+    });
+
+    // The restarted actor asks the weights queryable at once instead of waiting for a publish.
+    let published = u64_at(&learner.status().unwrap(), "/weights_version");
+    let restarted = Actor::start(port, 1, "kill-actor", runs.path());
+    actors[1] = restarted;
+    let line = actors[1].wait_for_log(Duration::from_secs(30), "first weights");
+    let after_ms = log_field(&line, "after_ms").unwrap();
+    let version = log_field(&line, "version").unwrap();
+    eprintln!("restarted actor: first weights v{version} {after_ms} ms after joining (v{published} was published)");
+    assert!(after_ms < 2000, "{line}");
+    assert!(version >= published, "the restart got v{version}, older than the published v{published}");
+    learner.wait_for(Duration::from_secs(30), "the restarted actor back in training", |s| {
+        s["connected_actors"] == serde_json::json!([0, 1]) && u64_at(s, "/actors/1/transitions") > 0
+    });
+    assert!(actors[0].is_running());
+}
+
+#[test]
+fn a_learner_killed_with_sigkill_resumes_the_run_and_running_actors_reconnect() {
+    let runs = tempfile::tempdir().unwrap();
+    let port = free_port();
+    // No replay snapshot in periodic checkpoints: the resumed learner refills replay.
+    let settings = ["--set", "learner.checkpoint_every=100", "--set", "rate.warmup=2000"];
+    let mut learner = Learner::start_on(port, SMOKE, runs.path(), "kill-learner", 0, &settings);
+    let mut actors: Vec<Actor> = (0..2).map(|id| Actor::start(port, id, "kill-learner", runs.path())).collect();
+    let before = learner.wait_for(Duration::from_secs(120), "a few checkpoints", |s| u64_at(s, "/updates") >= 350);
+    signal(learner.child.id(), "KILL");
+    let _ = learner.child.wait();
+    let checkpoints = runs.path().join("kill-learner/checkpoints");
+    let saved = checkpoint::load(&checkpoints).unwrap();
+    assert!(saved.meta.progress.updates >= 300, "{:?}", saved.meta.progress);
+    assert!(checkpoint::load_replay(&saved).unwrap().is_none(), "periodic checkpoints hold no replay");
+    let actor_steps: Vec<u64> = actors.iter().map(|a| last_status_steps(&a.log_text())).collect();
+
+    // The actors outlive the learner and keep simulating.
+    std::thread::sleep(Duration::from_secs(1));
+    assert!(actors.iter_mut().all(Actor::is_running), "actors exited when the learner died");
+
+    // The killed learner's last status.json must not pass for the new one's.
+    std::fs::remove_file(runs.path().join("kill-learner/status.json")).unwrap();
+    let restarted = Instant::now();
+    let mut resumed = Learner::resume_on(port, runs.path(), "kill-learner", 0, &[]);
+    let status = resumed.wait_for(Duration::from_secs(60), "both actors reconnected and sending", |s| {
+        s["connected_actors"] == serde_json::json!([0, 1])
+            && (0..2).all(|id| u64_at(s, &format!("/actors/{id}/transitions")) > 0)
+    });
+    let reconnect = restarted.elapsed();
+    eprintln!("actors reconnected and sending {:.1} s after the learner restarted", reconnect.as_secs_f64());
+    assert!(reconnect < Duration::from_secs(15), "{reconnect:?}");
+
+    // Counters continue from the checkpoint; the weights version moves past anything the
+    // killed learner may have published; the replay refills through the warm-up before
+    // training resumes, and the rate limiter allows no burst.
+    let progress = &saved.meta.progress;
+    assert!(u64_at(&status, "/updates") >= progress.updates);
+    assert!(u64_at(&status, "/env_steps") >= progress.env_steps);
+    assert!(u64_at(&status, "/weights_version") > u64_at(&before, "/weights_version"), "{status:#}\n{before:#}");
+    let trained = resumed.wait_for(Duration::from_secs(60), "training after the warm-up", |s| {
+        u64_at(s, "/updates") > progress.updates + 20
+    });
+    let new_updates = u64_at(&trained, "/updates") - progress.updates;
+    let new_inserts = u64_at(&trained, "/replay_len");
+    assert!(new_inserts >= 2000, "updates started before the warm-up refilled: replay {new_inserts}");
+    // samples_per_insert 4, batch 32, error buffer 128: updates ≤ (4·(inserted − warm-up) + 128)/32,
+    // with a little slack for the transitions still pending their successor.
+    let allowed = (4 * (new_inserts + 8 - 2000) + 128) / 32 + 1;
+    assert!(new_updates <= allowed, "a burst of {new_updates} updates for {new_inserts} inserts (allowed {allowed})");
+
+    // The same actor processes carried on: their step counters never went back.
+    for (actor, before) in actors.iter_mut().zip(actor_steps) {
+        assert!(actor.is_running());
+        let now = last_status_steps(&actor.log_text());
+        assert!(now > before, "actor steps {before} → {now}");
+    }
+    let exit = resumed.terminate(Duration::from_secs(60));
+    assert!(exit.success());
+    for actor in &mut actors {
+        let _ = actor.child.wait();
+    }
+}
+
+/// The step count of an actor's newest status log line.
+fn last_status_steps(log: &str) -> u64 {
+    log.lines().rev().find(|l| l.contains("actor status")).and_then(|l| log_field(l, "steps")).unwrap_or(0)
+}
+
+#[test]
+fn bad_input_is_refused_counted_and_kept_out_of_replay_while_training_goes_on() {
+    let runs = tempfile::tempdir().unwrap();
+    let port = free_port();
+    let mut learner = Learner::start_on(port, SMOKE, runs.path(), "garbage", 2, &[]);
+    learner.wait_for(Duration::from_secs(120), "training", |s| u64_at(s, "/updates") > 50);
+
+    let output = Command::new(binary("garbage"))
+        .args(["--connect", &format!("tcp/127.0.0.1:{port}"), "--run", "garbage", "--id", "77", "--rounds", "5"])
+        .output()
+        .unwrap();
+    assert!(output.status.success(), "{}", String::from_utf8_lossy(&output.stderr));
+    let sent: serde_json::Value = serde_json::from_slice(&output.stdout).unwrap();
+    assert_eq!(sent["nan"], 5, "{sent}");
+
+    // Every kind is counted under its reason.
+    let expected = ["decode", "version", "run_id", "obs_dim", "non_finite", "action", "batch_size", "oversize", "replayed"];
+    let status = learner.wait_for(Duration::from_secs(30), "every rejection counted", |s| {
+        expected.iter().all(|kind| u64_at(s, &format!("/rejected/{kind}")) > 0)
+    });
+    let rejected = &status["rejected"];
+    // NaN and ∞ → non_finite, 2 a round; random and cut bytes fail to decode (or decode to
+    // an empty message: wrong version) or miss their count.
+    assert_eq!(u64_at(rejected, "/non_finite"), 10, "{rejected}");
+    assert!(u64_at(rejected, "/version") >= 5, "{rejected}");
+    assert_eq!(u64_at(rejected, "/replayed"), 5, "{rejected}");
+    let total: u64 = rejected.as_object().unwrap().values().filter_map(serde_json::Value::as_u64).sum();
+    assert_eq!(total, 5 * 13, "every bad message is counted once: {rejected}");
+    // Only the one valid batch of actor 77 was accepted.
+    assert_eq!(u64_at(&status, "/actors/77/transitions"), 8, "{status:#}");
+
+    // Training went on, and the replay holds only finite, valid transitions.
+    let updates = u64_at(&status, "/updates");
+    learner.wait_for(Duration::from_secs(60), "more updates", |s| u64_at(s, "/updates") > updates + 50);
+    assert!(learner.terminate(Duration::from_secs(60)).success());
+    let saved = checkpoint::load(&runs.path().join("garbage/checkpoints")).unwrap();
+    let replay = checkpoint::load_replay(&saved).unwrap().unwrap();
+    assert!(replay.len() > 0 && replay.all_finite());
+}
+
+#[test]
+fn a_kill_during_a_checkpoint_write_keeps_the_previous_checkpoint_and_the_run_resumes() {
+    let runs = tempfile::tempdir().unwrap();
+    let port = free_port();
+    let checkpoints = runs.path().join("torn/checkpoints");
+    let mut learner = {
+        // Every save pauses 1.5 s between writing its files and renaming them into place.
+        let mut command = Command::new(binary("learner"));
+        command
+            .current_dir(crawler_tests::repo_root())
+            .args(["--config", SMOKE, "--run", "torn", "--actors", "2"])
+            .args(["--set", &format!("learner.listen=[\"tcp/127.0.0.1:{port}\"]")])
+            .args(["--set", &format!("learner.runs_dir=\"{}\"", runs.path().display())])
+            .args(["--actor-bin", binary("actor").to_str().unwrap()])
+            .env("CRAWLER_FAULT_CHECKPOINT_PAUSE_MS", "1500")
+            .stderr(std::process::Stdio::null());
+        command.spawn().unwrap()
+    };
+    let start = Instant::now();
+    let partial = loop {
+        let entries: Vec<String> = std::fs::read_dir(&checkpoints)
+            .map(|d| d.flatten().map(|e| e.file_name().to_string_lossy().into_owned()).collect())
+            .unwrap_or_default();
+        let complete = entries.iter().filter(|n| !n.contains(".partial-")).count();
+        if complete >= 1
+            && let Some(partial) = entries.iter().find(|n| n.contains(".partial-"))
+        {
+            break partial.clone();
+        }
+        assert!(start.elapsed() < Duration::from_secs(120), "no checkpoint write to interrupt: {entries:?}");
+        std::thread::sleep(Duration::from_millis(20));
+    };
+    // Kill the learner (its actors are its children: end them too) mid-write.
+    let children = crawler_tests::children_of(learner.id());
+    signal(learner.id(), "KILL");
+    let _ = learner.wait();
+    for child in children {
+        signal(child, "KILL");
+    }
+    assert!(checkpoints.join(&partial).exists(), "the interrupted write left its partial directory");
+
+    // The previous checkpoint is intact and is what loads.
+    let saved = checkpoint::load(&checkpoints).unwrap();
+    assert!(!saved.path.to_string_lossy().contains(".partial-"));
+    assert!(saved.online.iter().all(|v| v.is_finite()));
+
+    // The run resumes from it, and the partial directory is cleaned away.
+    let mut resumed = Learner::resume_on(port, runs.path(), "torn", 2, &[]);
+    resumed.wait_for(Duration::from_secs(120), "training after the resume", |s| {
+        u64_at(s, "/updates") > saved.meta.progress.updates
+    });
+    assert!(resumed.terminate(Duration::from_secs(60)).success());
+    assert!(!checkpoints.join(&partial).exists(), "the partial directory was removed");
+    let last = checkpoint::load(&checkpoints).unwrap();
+    assert!(last.meta.progress.updates > saved.meta.progress.updates);
+}
