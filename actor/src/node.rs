@@ -28,7 +28,8 @@ use crate::settings::ActorSettings;
 pub struct ActorOptions {
     /// zenoh endpoints of the learner, e.g. `tcp/127.0.0.1:7447`.
     pub connect: Vec<String>,
-    pub id: u32,
+    /// This actor's id; `None`: ask the learner for a free one (`--id auto`).
+    pub id: Option<u32>,
     /// The run to join; when absent, the first run a learner offers.
     pub run: Option<String>,
     /// ε = 0 and only evaluation stats are published.
@@ -37,6 +38,8 @@ pub struct ActorOptions {
     pub zenoh_overrides: Vec<(String, String)>,
     /// Stop after this many decisions per crawler (none: run until told to stop).
     pub max_steps: Option<u64>,
+    /// A file touched at every status report (container health checks).
+    pub heartbeat: Option<std::path::PathBuf>,
 }
 
 #[derive(Debug, thiserror::Error)]
@@ -100,9 +103,9 @@ struct Counters {
 }
 
 /// Runs an actor until the learner says stop, `stop` is set, or `max_steps` is reached.
-pub async fn run(options: ActorOptions, stop: Arc<AtomicBool>) -> Result<(), NodeError> {
+pub async fn run(mut options: ActorOptions, stop: Arc<AtomicBool>) -> Result<(), NodeError> {
     let config = client_config(&options.connect, &options.zenoh_overrides)?;
-    info!(endpoints = ?options.connect, id = options.id, "connecting to the learner");
+    info!(endpoints = ?options.connect, id = ?options.id, "connecting to the learner");
     // With connect/timeout_ms = -1, opening waits for the learner forever, and its future
     // blocks the thread that polls it; open on a blocking thread so a signal can end the wait.
     let opening = tokio::task::spawn_blocking(move || zenoh::Wait::wait(zenoh::open(config)));
@@ -116,8 +119,11 @@ pub async fn run(options: ActorOptions, stop: Arc<AtomicBool>) -> Result<(), Nod
         }
     };
 
-    let (run_id, settings) = fetch_run_info(&session, options.run.as_deref(), &stop).await?;
-    info!(run = %run_id, envs = settings.envs_per_actor, evaluator = options.evaluator, "joined run");
+    let (run_id, settings, assigned) =
+        fetch_run_info(&session, options.run.as_deref(), options.id.is_none(), &stop).await?;
+    let id = options.id.or(assigned).ok_or_else(|| NodeError::Settings("the learner assigned no actor id".into()))?;
+    options.id = Some(id);
+    info!(run = %run_id, id, envs = settings.envs_per_actor, evaluator = options.evaluator, "joined run");
     let spec =
         NetworkSpec { obs_dim: OBS_DIM, hidden: vec![], num_actions: settings.env.num_actions(), layer_norm: true };
 
@@ -161,7 +167,7 @@ pub async fn run(options: ActorOptions, stop: Arc<AtomicBool>) -> Result<(), Nod
     let _token = if options.evaluator {
         None
     } else {
-        let token = session.liveliness().declare_token(keys::alive_actor(&run_id, options.id)).await;
+        let token = session.liveliness().declare_token(keys::alive_actor(&run_id, id)).await;
         Some(token.map_err(zenoh_error("declaring liveliness"))?)
     };
 
@@ -190,17 +196,17 @@ pub async fn run(options: ActorOptions, stop: Arc<AtomicBool>) -> Result<(), Nod
     }
 
     let transitions = session
-        .declare_publisher(keys::transitions(&run_id, options.id))
+        .declare_publisher(keys::transitions(&run_id, id))
         .congestion_control(CongestionControl::Block)
         .await
         .map_err(zenoh_error("declaring the transitions publisher"))?;
     let stats = session
-        .declare_publisher(keys::stats(&run_id, options.id))
+        .declare_publisher(keys::stats(&run_id, id))
         .congestion_control(CongestionControl::Drop)
         .await
         .map_err(zenoh_error("declaring the stats publisher"))?;
     let status = session
-        .declare_publisher(keys::status(&run_id, options.id))
+        .declare_publisher(keys::status(&run_id, id))
         .congestion_control(CongestionControl::Drop)
         .await
         .map_err(zenoh_error("declaring the status publisher"))?;
@@ -240,7 +246,7 @@ pub async fn run(options: ActorOptions, stop: Arc<AtomicBool>) -> Result<(), Nod
                 let report = proto::ActorStatus {
                     protocol_version: PROTOCOL_VERSION,
                     run_id: run_id.clone(),
-                    actor_id: options.id,
+                    actor_id: id,
                     weights_version: counters.weights_version.load(Ordering::Relaxed),
                     env_steps: steps,
                     physics_steps: counters.physics_steps.load(Ordering::Relaxed),
@@ -250,12 +256,17 @@ pub async fn run(options: ActorOptions, stop: Arc<AtomicBool>) -> Result<(), Nod
                     evaluator: options.evaluator,
                 };
                 let _ = status.put(report.encode_to_vec()).await;
+                if let Some(path) = &options.heartbeat
+                    && let Err(e) = std::fs::write(path, steps.to_string())
+                {
+                    warn!("heartbeat {}: {e}", path.display());
+                }
                 info!(steps, steps_per_s = format!("{rate:.0}"), weights = report.weights_version, epsilon = format!("{:.4}", report.epsilon), "actor status");
             }
         }
     }
     let result = simulation.join();
-    info!("actor {} stopped", options.id);
+    info!("actor {id} stopped");
     let _ = session.close().await;
     match result {
         Ok(()) => Ok(()),
@@ -274,8 +285,9 @@ async fn stopped(stop: &AtomicBool) {
 async fn fetch_run_info(
     session: &zenoh::Session,
     run: Option<&str>,
+    assign: bool,
     stop: &AtomicBool,
-) -> Result<(String, ActorSettings), NodeError> {
+) -> Result<(String, ActorSettings, Option<u32>), NodeError> {
     let key = match run {
         Some(run) => {
             keys::check_run_id(run).map_err(|e| NodeError::Settings(e.to_string()))?;
@@ -283,6 +295,7 @@ async fn fetch_run_info(
         }
         None => keys::info("*"),
     };
+    let key = if assign { format!("{key}?{}", keys::ASSIGN_PARAMETER) } else { key };
     let mut announced = false;
     while !stop.load(Ordering::SeqCst) {
         if let Ok(replies) = session.get(&key).timeout(Duration::from_secs(2)).await {
@@ -293,7 +306,11 @@ async fn fetch_run_info(
                         let settings: ActorSettings = serde_json::from_str(&info.actor_settings_json)
                             .map_err(|e| NodeError::Settings(e.to_string()))?;
                         settings.validate().map_err(NodeError::Settings)?;
-                        return Ok((info.run_id, settings));
+                        if assign && info.assigned_actor_id.is_none() {
+                            warn!("the learner assigned no id; asking again");
+                            continue;
+                        }
+                        return Ok((info.run_id, settings, info.assigned_actor_id));
                     }
                     Err(e) => warn!("ignoring run info: {e}"),
                 }
@@ -339,15 +356,17 @@ fn simulate(
     counters: &Counters,
 ) {
     let Some(mut policy) = policy_rx.borrow_and_update().clone() else { return };
-    let mut env = VecEnv::new(&settings.env, &settings.seeds(options.id));
+    // `run` resolved an automatic id before starting the simulation.
+    let id = options.id.unwrap_or_default();
+    let mut env = VecEnv::new(&settings.env, &settings.seeds(id));
     let k = env.len();
-    let mut rng = ChaCha8Rng::seed_from_u64(settings.seed ^ (0x9E37_79B9 * (u64::from(options.id) + 1)));
+    let mut rng = ChaCha8Rng::seed_from_u64(settings.seed ^ (0x9E37_79B9 * (u64::from(id) + 1)));
     // Distinct per process: start time mixed with the process id.
     let started = std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).map_or(0, |d| d.as_nanos() as u64);
     let incarnation = started ^ (u64::from(std::process::id()) << 40);
     let num_actions = settings.env.num_actions() as u32;
     let repeat = u64::from(settings.env.action_repeat);
-    let mut batch = new_batch(run_id, options.id, incarnation);
+    let mut batch = new_batch(run_id, id, incarnation);
     let mut greedy = Vec::with_capacity(k);
     let mut actions = vec![0u32; k];
     let mut observations = vec![0.0f32; k * OBS_DIM];
@@ -359,7 +378,7 @@ fn simulate(
             policy = latest;
         }
         counters.weights_version.store(policy.version, Ordering::Relaxed);
-        let epsilon = if options.evaluator { 0.0 } else { settings.exploration.epsilon(options.id, steps_per_env) };
+        let epsilon = if options.evaluator { 0.0 } else { settings.exploration.epsilon(id, steps_per_env) };
         counters.epsilon_bits.store(epsilon.to_bits(), Ordering::Relaxed);
         observations.copy_from_slice(env.observations());
         if policy.policy.greedy_actions(&observations, &mut greedy).is_err() {
@@ -392,7 +411,7 @@ fn simulate(
             if batch.len() >= settings.batch_transitions {
                 batch.weights_version = policy.version;
                 batch.count = batch.len() as u32;
-                let full = std::mem::replace(&mut batch, new_batch(run_id, options.id, incarnation));
+                let full = std::mem::replace(&mut batch, new_batch(run_id, id, incarnation));
                 batch.sequence = full.sequence + 1;
                 if out.blocking_send(Outgoing::Batch(full)).is_err() {
                     return;
@@ -403,7 +422,7 @@ fn simulate(
             let stats = proto::EpisodeStats {
                 protocol_version: PROTOCOL_VERSION,
                 run_id: run_id.to_string(),
-                actor_id: options.id,
+                actor_id: id,
                 epsilon,
                 episode_return: summary.reward.total(),
                 return_position: summary.reward.position,

@@ -247,11 +247,11 @@ pub fn read_events(path: &Path) -> Result<Vec<Scalar>, MetricsError> {
 
 /// Reads `metrics.csv`.
 pub fn read_csv(path: &Path) -> Result<Vec<Scalar>, MetricsError> {
-    let text =
-        std::fs::read_to_string(path).map_err(|source| MetricsError::Io { path: path.to_path_buf(), source })?;
+    let text = std::fs::read_to_string(path).map_err(|source| MetricsError::Io { path: path.to_path_buf(), source })?;
     let mut scalars = Vec::new();
     for (index, line) in text.lines().enumerate().skip(1) {
-        let bad = |problem: &str| MetricsError::Csv { path: path.to_path_buf(), line: index + 1, problem: problem.into() };
+        let bad =
+            |problem: &str| MetricsError::Csv { path: path.to_path_buf(), line: index + 1, problem: problem.into() };
         if line.trim().is_empty() {
             continue;
         }

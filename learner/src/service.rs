@@ -89,6 +89,8 @@ struct Shared {
     latest_weights: Mutex<Vec<u8>>,
     dropped_batches: AtomicU64,
     evaluation: Mutex<Option<proto::EpisodeStats>>,
+    /// Ids handed to `--id auto` actors, and when: reserved until the actor shows up.
+    assigned: Mutex<BTreeMap<u32, Instant>>,
     /// Episodes not yet written to the metrics; bounded by [`MAX_PENDING_EPISODES`].
     pending_episodes: Mutex<Vec<proto::EpisodeStats>>,
 }
@@ -163,14 +165,19 @@ pub async fn run(options: ServiceOptions, stop: Arc<AtomicBool>) -> Result<Outco
         run_id: run_id.clone(),
         actor_settings_json: serde_json::to_string(&config.actor_settings())
             .map_err(|e| ServiceError::Setup(e.to_string()))?,
-    }
-    .encode_to_vec();
+        assigned_actor_id: None,
+    };
     let info_key = keys::info(&run_id);
     let reply_key = info_key.clone();
+    let info_shared = Arc::clone(&shared);
     let _info_queryable = session
         .declare_queryable(&info_key)
         .callback(move |query| {
-            let _ = query.reply(&reply_key, run_info.clone()).wait();
+            let mut info = run_info.clone();
+            if query.parameters().contains_key(keys::ASSIGN_PARAMETER) {
+                info.assigned_actor_id = Some(assign_actor_id(&info_shared));
+            }
+            let _ = query.reply(&reply_key, info.encode_to_vec()).wait();
         })
         .await
         .map_err(zenoh_error("declaring the run-info queryable"))?;
@@ -277,6 +284,20 @@ pub async fn run(options: ServiceOptions, stop: Arc<AtomicBool>) -> Result<Outco
     }
     let _ = session.close().await;
     Ok(outcome)
+}
+
+/// How long an id handed out stays reserved for an actor that has not yet connected.
+const ASSIGNMENT_HOLD: Duration = Duration::from_secs(30);
+
+/// The smallest id that no connected actor holds and that was not handed out recently.
+fn assign_actor_id(shared: &Shared) -> u32 {
+    let connected = lock(&shared.connected).clone();
+    let mut assigned = lock(&shared.assigned);
+    assigned.retain(|id, at| at.elapsed() < ASSIGNMENT_HOLD && !connected.contains(id));
+    let id = (0..).find(|id| !connected.contains(id) && !assigned.contains_key(id)).unwrap_or(u32::MAX);
+    assigned.insert(id, Instant::now());
+    info!(actor = id, "assigned an actor id");
+    id
 }
 
 fn count_rejection(shared: &Shared, error: &proto::ProtoError) {

@@ -59,6 +59,9 @@ pub fn info(run: &str) -> String {
     format!("{ROOT}/{run}/info")
 }
 
+/// The selector parameter with which an actor asks the run-info queryable for an id.
+pub const ASSIGN_PARAMETER: &str = "assign";
+
 pub fn control(run: &str) -> String {
     format!("{ROOT}/{run}/control")
 }

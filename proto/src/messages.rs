@@ -104,6 +104,10 @@ pub struct RunInfo {
     /// defines and validates its schema.
     #[prost(string, tag = "3")]
     pub actor_settings_json: String,
+    /// For a query with the parameter `assign`: an actor id that no connected actor holds and
+    /// that was not handed out in the last 30 s (actors started with `--id auto`).
+    #[prost(uint32, optional, tag = "4")]
+    pub assigned_actor_id: Option<u32>,
 }
 
 /// One finished episode.

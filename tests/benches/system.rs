@@ -3,7 +3,8 @@
 //!
 //! Prints, from one run: what the actors produce against what the learner ingests
 //! (transitions/s), end-to-end env and physics steps/s and updates/s, and the resident
-//! memory of the learner and of each actor over time.
+//! memory of the learner and of each actor over time, with the growth from the moment the
+//! replay filled up to the end. The soak: `SYSTEM_BENCH_SECONDS=1800`.
 #![allow(clippy::print_stdout, clippy::unwrap_used)]
 
 use std::time::{Duration, Instant};
@@ -19,23 +20,36 @@ fn main() {
     let first = learner.status().unwrap();
     let start = Instant::now();
     println!(
-        "{:>6} {:>10} {:>10} {:>10} {:>12} {:>12}",
-        "t (s)", "learner", "actor 0", "actor 1", "updates/s", "ingest/s"
+        "{:>6} {:>10} {:>10} {:>10} {:>12} {:>12} {:>10}",
+        "t (s)", "learner", "actor 0", "actor 1", "updates/s", "ingest/s", "replay"
     );
+    // (learner, actors) RSS when the replay first reported full, and the latest.
+    let mut at_full: Option<(f64, Vec<f64>)> = None;
+    let mut latest: (f64, Vec<f64>) = (f64::NAN, Vec::new());
+    let mut previous_len = 0;
     while start.elapsed() < Duration::from_secs(seconds) {
         std::thread::sleep(Duration::from_secs(10));
         let pid = learner.child.id();
         let actors: Vec<f64> = children_of(pid).into_iter().filter_map(rss_mib).collect();
         let status = learner.status().unwrap();
         let actor_rss: Vec<String> = actors.iter().map(|r| format!("{r:>7.1} MiB")).collect();
+        let learner_rss = rss_mib(pid).unwrap_or(f64::NAN);
+        let replay_len = u64_at(&status, "/replay_len");
         println!(
-            "{:>6} {:>6.1} MiB {} {:>12.0} {:>12.0}",
+            "{:>6} {:>6.1} MiB {} {:>12.0} {:>12.0} {:>10}",
             start.elapsed().as_secs(),
-            rss_mib(pid).unwrap_or(f64::NAN),
+            learner_rss,
             actor_rss.join(" "),
             status["updates_per_second"].as_f64().unwrap_or(f64::NAN),
             status["env_steps_per_second"].as_f64().unwrap_or(f64::NAN),
+            replay_len,
         );
+        // The replay is full when its length stops growing.
+        if at_full.is_none() && replay_len > 0 && replay_len == previous_len {
+            at_full = Some((learner_rss, actors.clone()));
+        }
+        previous_len = replay_len;
+        latest = (learner_rss, actors);
     }
     let last = learner.status().unwrap();
     let elapsed = last["elapsed_s"].as_f64().unwrap() - first["elapsed_s"].as_f64().unwrap();
@@ -54,5 +68,21 @@ fn main() {
         delta("/updates")
     );
     println!("dropped batches: {}, rejected: {}", last["dropped_batches"], last["rejected"]);
+    match at_full {
+        Some((learner_full, actors_full)) => {
+            println!(
+                "RSS learner: {learner_full:.1} MiB when replay filled, {:.1} MiB at the end ({:.3}x)",
+                latest.0,
+                latest.0 / learner_full
+            );
+            for (i, (full, end)) in actors_full.iter().zip(&latest.1).enumerate() {
+                println!(
+                    "RSS actor {i}: {full:.1} MiB when replay filled, {end:.1} MiB at the end ({:.3}x)",
+                    end / full
+                );
+            }
+        }
+        None => println!("the replay did not fill during the run: no growth figure"),
+    }
     learner.terminate(Duration::from_secs(60));
 }

@@ -169,7 +169,10 @@ pub struct Actor {
 impl Actor {
     /// `actor --connect tcp/127.0.0.1:<port> --id <id> --run <run>`, its log in `log_dir`.
     pub fn start(port: u16, id: u32, run: &str, log_dir: &Path) -> Self {
-        let log = log_dir.join(format!("actor-{id}-{}.log", std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).unwrap().as_nanos()));
+        let log = log_dir.join(format!(
+            "actor-{id}-{}.log",
+            std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).unwrap().as_nanos()
+        ));
         let file = std::fs::File::create(&log).unwrap();
         let child = Command::new(binary("actor"))
             .args(["--connect", &format!("tcp/127.0.0.1:{port}"), "--id", &id.to_string(), "--run", run])
@@ -199,7 +202,11 @@ impl Actor {
                 return line.to_string();
             }
             assert!(self.is_running(), "actor exited before logging {needle:?}: {}", self.log_text());
-            assert!(start.elapsed() < timeout, "no {needle:?} in the actor's log after {timeout:?}: {}", self.log_text());
+            assert!(
+                start.elapsed() < timeout,
+                "no {needle:?} in the actor's log after {timeout:?}: {}",
+                self.log_text()
+            );
             std::thread::sleep(Duration::from_millis(50));
         }
     }

@@ -133,7 +133,8 @@ fn bad_input_is_refused_counted_and_kept_out_of_replay_while_training_goes_on() 
     assert_eq!(sent["nan"], 5, "{sent}");
 
     // Every kind is counted under its reason.
-    let expected = ["decode", "version", "run_id", "obs_dim", "non_finite", "action", "batch_size", "oversize", "replayed"];
+    let expected =
+        ["decode", "version", "run_id", "obs_dim", "non_finite", "action", "batch_size", "oversize", "replayed"];
     let status = learner.wait_for(Duration::from_secs(30), "every rejection counted", |s| {
         expected.iter().all(|kind| u64_at(s, &format!("/rejected/{kind}")) > 0)
     });

@@ -16,11 +16,7 @@ use crawler_tests::{Learner, binary, repo_root};
 
 fn run(binary_name: &str, args: &[&str]) -> Output {
     let output = Command::new(binary(binary_name)).current_dir(repo_root()).args(args).output().unwrap();
-    assert!(
-        output.status.success(),
-        "{binary_name} {args:?} failed: {}",
-        String::from_utf8_lossy(&output.stderr)
-    );
+    assert!(output.status.success(), "{binary_name} {args:?} failed: {}", String::from_utf8_lossy(&output.stderr));
     output
 }
 
@@ -141,7 +137,14 @@ fn init_from_copies_another_runs_networks_and_refuses_a_different_one() {
     // No actors and a one-second budget: no update happens, so the final checkpoint holds
     // exactly the networks it started from, with fresh counters.
     let from = runs.path().join("forward/checkpoints");
-    let args = ["--init-from", from.to_str().unwrap(), "--set", "learner.max_seconds=1", "--set", "env.direction=\"backward\""];
+    let args = [
+        "--init-from",
+        from.to_str().unwrap(),
+        "--set",
+        "learner.max_seconds=1",
+        "--set",
+        "env.direction=\"backward\"",
+    ];
     let mut transfer = Learner::start(runs.path(), "backward", 0, &args);
     assert!(transfer.wait_for_exit(Duration::from_secs(60)).success());
     let transferred = checkpoint::load(&runs.path().join("backward/checkpoints")).unwrap();

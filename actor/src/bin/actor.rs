@@ -16,9 +16,13 @@ struct Args {
     /// Learner endpoint(s), e.g. tcp/127.0.0.1:7447 or tls/learner.example:7447.
     #[arg(long, required = true, env = "CRAWLER_CONNECT", value_delimiter = ',')]
     connect: Vec<String>,
-    /// This actor's index; also picks its ε on the Ape-X ladder and its seeds.
-    #[arg(long, env = "CRAWLER_ACTOR_ID", default_value_t = 0)]
-    id: u32,
+    /// This actor's index, which also picks its ε on the Ape-X ladder and its seeds; `auto`
+    /// asks the learner for a free one (for replicas started alike, e.g. by docker compose).
+    #[arg(long, env = "CRAWLER_ACTOR_ID", default_value = "0", value_parser = parse_id)]
+    id: ActorId,
+    /// A file touched at every status report, for container health checks.
+    #[arg(long, env = "CRAWLER_HEARTBEAT")]
+    heartbeat: Option<std::path::PathBuf>,
     /// Run to join (default: whichever run the learner serves).
     #[arg(long, env = "CRAWLER_RUN")]
     run: Option<String>,
@@ -33,13 +37,30 @@ struct Args {
     max_steps: Option<u64>,
 }
 
+#[derive(Debug, Clone, Copy)]
+enum ActorId {
+    Fixed(u32),
+    Auto,
+}
+
+fn parse_id(text: &str) -> Result<ActorId, String> {
+    if text == "auto" {
+        return Ok(ActorId::Auto);
+    }
+    text.parse().map(ActorId::Fixed).map_err(|_| format!("expected a number in 0..=4294967295 or `auto`, got {text:?}"))
+}
+
 fn main() -> anyhow::Result<()> {
     crawler_actor::cli::init_logging();
     let args = Args::parse();
     let zenoh_overrides = crawler_actor::cli::zenoh_overrides(&args.zenoh).map_err(anyhow::Error::msg)?;
     let options = ActorOptions {
         connect: args.connect,
-        id: args.id,
+        id: match args.id {
+            ActorId::Fixed(id) => Some(id),
+            ActorId::Auto => None,
+        },
+        heartbeat: args.heartbeat,
         run: args.run,
         evaluator: args.evaluator,
         zenoh_overrides,

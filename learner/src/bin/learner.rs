@@ -29,6 +29,10 @@ struct Args {
     /// Name of a new run (default: run-<unix time>).
     #[arg(long, conflicts_with = "resume")]
     run: Option<String>,
+    /// With --run: if the run already has checkpoints, resume it instead of refusing (for
+    /// restart policies, e.g. docker compose's).
+    #[arg(long, requires = "run")]
+    or_resume: bool,
     /// Continue run RUN from its newest checkpoint, with the config it was started with.
     #[arg(long, value_name = "RUN")]
     resume: Option<String>,
@@ -49,6 +53,16 @@ fn main() -> anyhow::Result<()> {
     crawler_actor::cli::init_logging();
     let args = Args::parse();
 
+    let mut args = args;
+    if args.or_resume
+        && let Some(run) = &args.run
+    {
+        let runs_dir = runs_dir_of(&args)?;
+        if checkpoint::list(&runs_dir.join(run).join("checkpoints")).is_ok_and(|l| !l.is_empty()) {
+            info!(run = %run, "the run has checkpoints: resuming it");
+            args.resume = args.run.take();
+        }
+    }
     let (config, run_id, resume) = match &args.resume {
         Some(run) => {
             let runs_dir = runs_dir_of(&args)?;
@@ -73,8 +87,7 @@ fn main() -> anyhow::Result<()> {
     let zenoh_overrides = crawler_actor::cli::zenoh_overrides(&args.zenoh).map_err(anyhow::Error::msg)?;
     let init_from = match &args.init_from {
         Some(path) => {
-            let checkpoint =
-                checkpoint::load(path).with_context(|| format!("--init-from {}", path.display()))?;
+            let checkpoint = checkpoint::load(path).with_context(|| format!("--init-from {}", path.display()))?;
             if checkpoint.meta.network != config.network_spec() {
                 bail!(
                     "--init-from {}: its network {:?} differs from this config's {:?}; set network.* to match",

@@ -68,8 +68,12 @@ fn stacked(
     let panel_height = 300;
     let mut canvas = Canvas::new(WIDTH, panel_height * panels.len() as u32, Colour::White);
     for (i, (tag, title)) in panels.iter().enumerate() {
-        let mut chart =
-            Chart { title: (*title).to_string(), x_label: x_label.into(), y_label: (*title).to_string(), ..Chart::default() };
+        let mut chart = Chart {
+            title: (*title).to_string(),
+            x_label: x_label.into(),
+            y_label: (*title).to_string(),
+            ..Chart::default()
+        };
         for (r, run) in runs.iter().enumerate() {
             let (colour, light) = SERIES[r % SERIES.len()];
             let points = run.points(tag, x);
@@ -132,7 +136,11 @@ fn main() -> anyhow::Result<()> {
         args.labels.len(),
         args.runs.len()
     );
-    anyhow::ensure!(args.smoothing > 0.0 && args.smoothing < 1.0, "--smoothing must be in (0, 1), got {}", args.smoothing);
+    anyhow::ensure!(
+        args.smoothing > 0.0 && args.smoothing < 1.0,
+        "--smoothing must be in (0, 1), got {}",
+        args.smoothing
+    );
     let mut runs = Vec::new();
     for (i, dir) in args.runs.iter().enumerate() {
         let csv = dir.join("metrics.csv");

@@ -53,7 +53,8 @@ fn main() -> anyhow::Result<()> {
         crawler_actor::env::Direction::Backward => -1.0,
     };
     let start_x = frames.first().map_or(0.0, |f| f.base[0]);
-    let view = SideView { width: u32::from(args.width), height: u32::from(args.height), scale: f64::from(args.height) * 1.6 };
+    let view =
+        SideView { width: u32::from(args.width), height: u32::from(args.height), scale: f64::from(args.height) * 1.6 };
     let file = std::fs::File::create(&args.out).with_context(|| format!("creating {}", args.out.display()))?;
     let mut gif = GifWriter::new(std::io::BufWriter::new(file), args.width, args.height, delay)?;
     let mut canvas = Canvas::new(view.width, view.height, Colour::White);

@@ -76,7 +76,13 @@ impl Chart {
         if right - left < 20 || bottom - top < 20 {
             return;
         }
-        canvas.text(area.x + (area.width - text_width(&self.title, scale)) / 2, area.y + 4, &self.title, scale, Colour::Black);
+        canvas.text(
+            area.x + (area.width - text_width(&self.title, scale)) / 2,
+            area.y + 4,
+            &self.title,
+            scale,
+            Colour::Black,
+        );
 
         let points = || self.series.iter().flat_map(|s| s.points.iter());
         let (x_low, x_high) = range(points().map(|p| p.0)).unwrap_or((0.0, 1.0));

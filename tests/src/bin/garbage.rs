@@ -99,7 +99,10 @@ async fn main() -> anyhow::Result<()> {
             *sent.entry(kind).or_default() += 1;
         }
         let stats_garbage: Vec<u8> = (0..64).map(|_| rng.random()).collect();
-        session.put(keys::stats(&args.run, args.id), stats_garbage.clone()).await.map_err(|e| anyhow::anyhow!("{e}"))?;
+        session
+            .put(keys::stats(&args.run, args.id), stats_garbage.clone())
+            .await
+            .map_err(|e| anyhow::anyhow!("{e}"))?;
         session.put(keys::status(&args.run, args.id), stats_garbage).await.map_err(|e| anyhow::anyhow!("{e}"))?;
         *sent.entry("stats_and_status").or_default() += 2;
         tokio::time::sleep(std::time::Duration::from_millis(100)).await;

@@ -1,0 +1,184 @@
+//! `docker compose up` on this machine's Docker engine, with the images that
+//! `deploy/build-images.sh` builds (scripts/test builds them first): transitions flow and
+//! actors get weights; a killed actor container leaves training going and rejoins with the
+//! latest weights when started again; an actor cut off the network recovers when reconnected.
+//!
+//! Set `CRAWLER_DOCKER_TESTS=0` to skip on a machine without Docker; otherwise a missing
+//! engine or image is a failure that says what to do.
+
+#![allow(clippy::unwrap_used)]
+
+use std::path::{Path, PathBuf};
+use std::process::{Command, Output};
+use std::time::{Duration, Instant};
+
+use crawler_tests::{free_port, repo_root, u64_at};
+
+fn compose_tool() -> Vec<String> {
+    let plugin = Command::new("docker").args(["compose", "version"]).output().is_ok_and(|o| o.status.success());
+    if plugin { vec!["docker".into(), "compose".into()] } else { vec!["docker-compose".into()] }
+}
+
+struct Compose {
+    tool: Vec<String>,
+    project: String,
+    runs: PathBuf,
+    port: u16,
+}
+
+impl Compose {
+    fn command(&self, args: &[&str]) -> Output {
+        let output = Command::new(&self.tool[0])
+            .args(&self.tool[1..])
+            .args(["-p", &self.project, "-f"])
+            .arg(repo_root().join("deploy/docker-compose.yml"))
+            .args(args)
+            .env("CRAWLER_RUNS", &self.runs)
+            .env("CRAWLER_PORT", self.port.to_string())
+            .env("CRAWLER_CONFIG", "smoke.toml")
+            .env("CRAWLER_RUN", "docker")
+            .env("CRAWLER_SET", "learner.status_every_s=0.5")
+            .output()
+            .unwrap();
+        assert!(output.status.success(), "compose {args:?}: {}", String::from_utf8_lossy(&output.stderr));
+        output
+    }
+
+    fn status(&self) -> Option<serde_json::Value> {
+        serde_json::from_str(&std::fs::read_to_string(self.runs.join("docker/status.json")).ok()?).ok()
+    }
+
+    fn wait_for(&self, timeout: Duration, what: &str, done: impl Fn(&serde_json::Value) -> bool) -> serde_json::Value {
+        let start = Instant::now();
+        loop {
+            if let Some(status) = self.status()
+                && done(&status)
+            {
+                return status;
+            }
+            assert!(start.elapsed() < timeout, "timed out waiting for {what}; last status: {:#?}", self.status());
+            std::thread::sleep(Duration::from_millis(250));
+        }
+    }
+
+    fn container(&self, service: &str, index: u32) -> String {
+        // Compose v1 names containers <project>_<service>_<n>, v2 <project>-<service>-<n>.
+        let ps = self.command(&["ps", "-q", service]);
+        let ids: Vec<String> = String::from_utf8_lossy(&ps.stdout).lines().map(String::from).collect();
+        let named = |separator: &str| format!("{}{separator}{service}{separator}{index}", self.project);
+        for id in &ids {
+            let name = docker(&["inspect", "--format", "{{.Name}}", id]);
+            let name = name.trim().trim_start_matches('/');
+            if name == named("_") || name == named("-") {
+                return id.clone();
+            }
+        }
+        panic!("no container {service} #{index} among {ids:?}");
+    }
+}
+
+impl Drop for Compose {
+    fn drop(&mut self) {
+        let _ = Command::new(&self.tool[0])
+            .args(&self.tool[1..])
+            .args(["-p", &self.project, "-f"])
+            .arg(repo_root().join("deploy/docker-compose.yml"))
+            .args(["down", "--timeout", "5"])
+            .env("CRAWLER_RUNS", &self.runs)
+            .output();
+    }
+}
+
+fn docker(args: &[&str]) -> String {
+    let output = Command::new("docker").args(args).output().unwrap();
+    assert!(output.status.success(), "docker {args:?}: {}", String::from_utf8_lossy(&output.stderr));
+    String::from_utf8_lossy(&output.stdout).into_owned()
+}
+
+fn docker_ready() -> bool {
+    if std::env::var("CRAWLER_DOCKER_TESTS").as_deref() == Ok("0") {
+        eprintln!("CRAWLER_DOCKER_TESTS=0: skipping the Docker tests");
+        return false;
+    }
+    let engine = Command::new("docker").arg("info").output();
+    assert!(
+        engine.is_ok_and(|o| o.status.success()),
+        "no Docker engine answers `docker info`: start one, or set CRAWLER_DOCKER_TESTS=0 to skip these tests"
+    );
+    for image in ["crawler-learner:latest", "crawler-actor:latest"] {
+        let found = Command::new("docker").args(["image", "inspect", image]).output().unwrap().status.success();
+        assert!(found, "image {image} is missing: run deploy/build-images.sh (scripts/test does)");
+    }
+    true
+}
+
+fn transitions_of(status: &serde_json::Value) -> u64 {
+    status["actors"].as_object().map_or(0, |actors| actors.values().map(|a| u64_at(a, "/transitions")).sum())
+}
+
+#[test]
+fn compose_trains_and_survives_a_killed_and_a_disconnected_actor() {
+    if !docker_ready() {
+        return;
+    }
+    let runs = tempfile::tempdir().unwrap();
+    // The containers run as an unprivileged user: let it write the runs directory.
+    std::fs::set_permissions(runs.path(), std::os::unix::fs::PermissionsExt::from_mode(0o777)).unwrap();
+    let compose = Compose {
+        tool: compose_tool(),
+        project: format!("crawlertest{}", std::process::id()),
+        runs: runs.path().to_path_buf(),
+        port: free_port(),
+    };
+    compose.command(&["up", "-d"]);
+
+    // Transitions flow from both actors (ids assigned by the learner) and weights reach them.
+    compose.wait_for(Duration::from_secs(120), "two actors training with fresh weights", |s| {
+        s["connected_actors"] == serde_json::json!([0, 1])
+            && (0..2).all(|id| {
+                u64_at(s, &format!("/actors/{id}/transitions")) > 0
+                    && u64_at(s, &format!("/actors/{id}/weights_version")) >= 3
+            })
+    });
+
+    // Kill one actor container: training goes on with the other.
+    let victim = compose.container("actor", 2);
+    docker(&["kill", &victim]);
+    let status = compose.wait_for(Duration::from_secs(60), "the killed actor to leave", |s| {
+        s["connected_actors"].as_array().is_some_and(|a| a.len() == 1)
+    });
+    let (updates, transitions) = (u64_at(&status, "/updates"), transitions_of(&status));
+    compose.wait_for(Duration::from_secs(60), "training with one actor", |s| {
+        u64_at(s, "/updates") > updates + 50 && transitions_of(s) > transitions
+    });
+
+    // Start it again: it rejoins and has the latest weights at once (from the queryable).
+    let published = u64_at(&compose.status().unwrap(), "/weights_version");
+    docker(&["start", &victim]);
+    let rejoined = compose.wait_for(Duration::from_secs(60), "the restarted actor back", |s| {
+        s["connected_actors"].as_array().is_some_and(|a| a.len() == 2)
+    });
+    let ids: Vec<u64> = rejoined["connected_actors"].as_array().unwrap().iter().filter_map(|v| v.as_u64()).collect();
+    compose.wait_for(Duration::from_secs(30), "the restarted actor acting on current weights", |s| {
+        ids.iter().all(|id| u64_at(s, &format!("/actors/{id}/weights_version")) >= published)
+    });
+
+    // Cut the other actor off the network for longer than zenoh's lease, then reconnect it.
+    let cut = compose.container("actor", 1);
+    let network = format!("{}_default", compose.project);
+    docker(&["network", "disconnect", &network, &cut]);
+    std::thread::sleep(Duration::from_secs(15));
+    let before = transitions_of(&compose.status().unwrap());
+    docker(&["network", "connect", &network, &cut]);
+    compose.wait_for(Duration::from_secs(90), "the reconnected actor sending again", |s| {
+        s["connected_actors"].as_array().is_some_and(|a| a.len() == 2) && transitions_of(s) > before + 1000
+    });
+    let status = compose.status().unwrap();
+    assert_eq!(status["dropped_batches"], 0, "{status:#}");
+
+    // A graceful stop leaves a final checkpoint.
+    compose.command(&["stop", "--timeout", "60", "learner"]);
+    let checkpoint = crawler_learner::checkpoint::load(&runs.path().join("docker/checkpoints")).unwrap();
+    assert!(checkpoint.meta.progress.updates >= updates);
+    assert!(Path::new(&runs.path().join("docker/metrics.csv")).exists());
+}
