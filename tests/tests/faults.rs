@@ -155,7 +155,7 @@ fn bad_input_is_refused_counted_and_kept_out_of_replay_while_training_goes_on() 
     assert!(learner.terminate(Duration::from_secs(60)).success());
     let saved = checkpoint::load(&runs.path().join("garbage/checkpoints")).unwrap();
     let replay = checkpoint::load_replay(&saved).unwrap().unwrap();
-    assert!(replay.len() > 0 && replay.all_finite());
+    assert!(!replay.is_empty() && replay.all_finite());
 }
 
 #[test]

@@ -7,6 +7,7 @@
 //! - `training.png`: TD loss, mean Q, env steps/s and updates/s against training time;
 //! - `joint_angles.png`: both joint angles over the first 4 s of a greedy episode of the
 //!   first run's newest checkpoint (the study's Fig. 4).
+//!
 //! The paths written go to stdout, one per line.
 
 use std::path::{Path, PathBuf};
