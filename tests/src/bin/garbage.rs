@@ -15,6 +15,7 @@ use crawler_proto::{self as proto, PROTOCOL_VERSION, keys};
 use prost::Message;
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
+use zenoh::qos::CongestionControl;
 
 #[derive(Debug, Parser)]
 struct Args {
@@ -66,7 +67,14 @@ async fn main() -> anyhow::Result<()> {
     // One valid batch first, whose sequence number every round then replays.
     const VALID_SEQUENCE: u64 = 1_000_000;
     let valid = valid_batch(&args.run, args.id, VALID_SEQUENCE, 8).encode_to_vec();
-    session.put(&transitions, valid.clone()).await.map_err(|e| anyhow::anyhow!("put valid: {e}"))?;
+    // Block rather than drop when the link is busy (the 16 MiB message fills it), so that
+    // every bad message reaches the learner and the test can count them exactly.
+    let block = CongestionControl::Block;
+    session
+        .put(&transitions, valid.clone())
+        .congestion_control(block)
+        .await
+        .map_err(|e| anyhow::anyhow!("put valid: {e}"))?;
     sent.insert("valid", 1);
     let mut sequence = 0u64;
     for _ in 0..args.rounds {
@@ -95,7 +103,11 @@ async fn main() -> anyhow::Result<()> {
         // A sequence number this incarnation has already used.
         messages.push(("replayed", valid.clone()));
         for (kind, bytes) in messages {
-            session.put(&transitions, bytes).await.map_err(|e| anyhow::anyhow!("put {kind}: {e}"))?;
+            session
+                .put(&transitions, bytes)
+                .congestion_control(block)
+                .await
+                .map_err(|e| anyhow::anyhow!("put {kind}: {e}"))?;
             *sent.entry(kind).or_default() += 1;
         }
         let stats_garbage: Vec<u8> = (0..64).map(|_| rng.random()).collect();
@@ -103,7 +115,11 @@ async fn main() -> anyhow::Result<()> {
             .put(keys::stats(&args.run, args.id), stats_garbage.clone())
             .await
             .map_err(|e| anyhow::anyhow!("{e}"))?;
-        session.put(keys::status(&args.run, args.id), stats_garbage).await.map_err(|e| anyhow::anyhow!("{e}"))?;
+        session
+            .put(keys::status(&args.run, args.id), stats_garbage)
+            .congestion_control(block)
+            .await
+            .map_err(|e| anyhow::anyhow!("{e}"))?;
         *sent.entry("stats_and_status").or_default() += 2;
         tokio::time::sleep(std::time::Duration::from_millis(100)).await;
     }
