@@ -398,10 +398,7 @@ impl Dqn {
     /// Restores weights, target and optimiser state from `checkpoint`. The network spec must
     /// match this learner's.
     pub fn restore(&mut self, checkpoint: &Checkpoint) -> Result<(), CheckpointError> {
-        self.check_network(checkpoint)?;
-        let bad = |e: String| corrupt(&checkpoint.path, e);
-        self.online.load_flat(&checkpoint.online).map_err(bad)?;
-        self.target.load_flat(&checkpoint.target).map_err(bad)?;
+        self.initialise_from(checkpoint)?;
         self.optimizer.exp_avg.clone_from(&checkpoint.exp_avg);
         self.optimizer.exp_avg_sq.clone_from(&checkpoint.exp_avg_sq);
         self.optimizer.step = checkpoint.meta.adam_step;

@@ -454,6 +454,8 @@ fn train(
     let batch_size = config.dqn.batch_size;
     let session_start = Instant::now();
     let prior_seconds = progress.train_seconds;
+    // Training time of the whole run: earlier sessions plus this one.
+    let train_seconds = || prior_seconds + session_start.elapsed().as_secs_f64();
     let mut last_checkpoint: Option<PathBuf> = None;
     let mut last_loss = (f64::NAN, f64::NAN);
     let mut status_clock = Instant::now();
@@ -465,7 +467,7 @@ fn train(
 
     // Every checkpoint, periodic or final, records the training time and ε at that moment.
     let save_checkpoint = |dqn: &Dqn, progress: &mut Progress, replay: Option<&Replay>| {
-        progress.train_seconds = prior_seconds + session_start.elapsed().as_secs_f64();
+        progress.train_seconds = train_seconds();
         progress.epsilon = mean_epsilon(shared);
         checkpoint::save(&checkpoint_dir, dqn, run_id, progress, &config_json, replay, config.learner.keep_checkpoints)
     };
@@ -535,8 +537,7 @@ fn train(
         }
 
         if metrics_clock.elapsed() >= METRICS_EVERY {
-            let train_seconds = prior_seconds + session_start.elapsed().as_secs_f64();
-            flush_metrics(&mut metrics, shared, &mut losses, train_seconds, progress.env_steps);
+            flush_metrics(&mut metrics, shared, &mut losses, train_seconds(), progress.env_steps);
             metrics_clock = Instant::now();
         }
 
@@ -552,7 +553,7 @@ fn train(
                 .collect();
             let status = Status {
                 run_id: run_id.to_string(),
-                elapsed_s: prior_seconds + session_start.elapsed().as_secs_f64(),
+                elapsed_s: train_seconds(),
                 updates: progress.updates,
                 updates_per_second: (progress.updates - status_counts.0) as f64 / seconds,
                 env_steps: progress.env_steps,
@@ -578,8 +579,7 @@ fn train(
     }
 
     // What arrived since the last flush still reaches the metrics.
-    let train_seconds = prior_seconds + session_start.elapsed().as_secs_f64();
-    flush_metrics(&mut metrics, shared, &mut losses, train_seconds, progress.env_steps);
+    flush_metrics(&mut metrics, shared, &mut losses, train_seconds(), progress.env_steps);
 
     let snapshot = config.learner.snapshot_replay.then_some(&replay);
     let path = save_checkpoint(&dqn, &mut progress, snapshot)?;

@@ -69,11 +69,37 @@ impl Learner {
         Self::launch_on(port, &["--config", config, "--run", run], runs_dir, run, actors, extra)
     }
 
+    /// Like [`Learner::start_on`] with extra environment variables (test hooks).
+    pub fn start_on_with_env(
+        port: u16,
+        config: &str,
+        runs_dir: &Path,
+        run: &str,
+        actors: usize,
+        extra: &[&str],
+        env: &[(&str, &str)],
+    ) -> Self {
+        Self::launch_env(port, &["--config", config, "--run", run], runs_dir, run, actors, extra, env)
+    }
+
     fn launch(mode: &[&str], runs_dir: &Path, run: &str, actors: usize, extra: &[&str]) -> Self {
         Self::launch_on(free_port(), mode, runs_dir, run, actors, extra)
     }
 
     fn launch_on(port: u16, mode: &[&str], runs_dir: &Path, run: &str, actors: usize, extra: &[&str]) -> Self {
+        Self::launch_env(port, mode, runs_dir, run, actors, extra, &[])
+    }
+
+    #[allow(clippy::too_many_arguments)]
+    fn launch_env(
+        port: u16,
+        mode: &[&str],
+        runs_dir: &Path,
+        run: &str,
+        actors: usize,
+        extra: &[&str],
+        env: &[(&str, &str)],
+    ) -> Self {
         let listen = format!("learner.listen=[\"tcp/127.0.0.1:{port}\"]");
         let runs = format!("learner.runs_dir=\"{}\"", runs_dir.display());
         let mut command = Command::new(binary("learner"));
@@ -84,6 +110,7 @@ impl Learner {
             .args(["--set", &listen, "--set", &runs])
             .args(["--actor-bin", binary("actor").to_str().unwrap()])
             .args(extra)
+            .envs(env.iter().copied())
             .stdout(Stdio::null())
             .stderr(Stdio::inherit());
         let child = command.spawn().unwrap();
@@ -96,60 +123,73 @@ impl Learner {
 
     /// The latest status.json, if one was written.
     pub fn status(&self) -> Option<serde_json::Value> {
-        let text = std::fs::read_to_string(self.status_path()).ok()?;
-        serde_json::from_str(&text).ok()
+        read_status(&self.status_path())
     }
 
-    /// Polls status.json until `done` holds; panics with the last status after `timeout`.
+    /// Polls status.json until `done` holds; panics with the last status after `timeout`, or
+    /// at once if the learner exits.
     pub fn wait_for(
         &mut self,
         timeout: Duration,
         what: &str,
         done: impl Fn(&serde_json::Value) -> bool,
     ) -> serde_json::Value {
-        let start = Instant::now();
-        loop {
-            if let Some(status) = self.status()
-                && done(&status)
-            {
-                return status;
-            }
-            if let Ok(Some(exit)) = self.child.try_wait() {
-                panic!("learner exited ({exit}) while waiting for {what}; last status {:?}", self.status());
-            }
-            assert!(start.elapsed() < timeout, "timed out waiting for {what}; last status: {:#?}", self.status());
-            std::thread::sleep(Duration::from_millis(200));
-        }
+        let path = self.status_path();
+        let child = &mut self.child;
+        wait_for_status(&path, timeout, what, done, || {
+            child.try_wait().ok().flatten().map(|exit| format!("learner exited ({exit})"))
+        })
     }
 
     /// Waits for the learner to exit by itself (a configured limit).
     pub fn wait_for_exit(&mut self, timeout: Duration) -> ExitStatus {
-        let start = Instant::now();
-        loop {
-            if let Some(status) = self.child.try_wait().unwrap() {
-                return status;
-            }
-            assert!(
-                start.elapsed() < timeout,
-                "learner still running after {timeout:?}; last status {:?}",
-                self.status()
-            );
-            std::thread::sleep(Duration::from_millis(100));
-        }
+        self.wait_exit(timeout, "learner still running")
     }
 
     /// Sends SIGTERM and waits for a clean exit.
     pub fn terminate(&mut self, timeout: Duration) -> ExitStatus {
-        let pid = self.child.id().to_string();
-        Command::new("kill").args(["-TERM", &pid]).status().unwrap();
+        signal(self.child.id(), "TERM");
+        self.wait_exit(timeout, "learner did not exit after SIGTERM")
+    }
+
+    fn wait_exit(&mut self, timeout: Duration, what: &str) -> ExitStatus {
         let start = Instant::now();
         loop {
             if let Some(status) = self.child.try_wait().unwrap() {
                 return status;
             }
-            assert!(start.elapsed() < timeout, "learner did not exit within {timeout:?} of SIGTERM");
+            assert!(start.elapsed() < timeout, "{what} after {timeout:?}; last status {:?}", self.status());
             std::thread::sleep(Duration::from_millis(100));
         }
+    }
+}
+
+/// A status.json, if it exists and parses.
+pub fn read_status(path: &Path) -> Option<serde_json::Value> {
+    serde_json::from_str(&std::fs::read_to_string(path).ok()?).ok()
+}
+
+/// Polls the status.json at `path` until `done` holds; panics with the last status after
+/// `timeout`, or as soon as `gone` names a reason the writer is no longer there.
+pub fn wait_for_status(
+    path: &Path,
+    timeout: Duration,
+    what: &str,
+    done: impl Fn(&serde_json::Value) -> bool,
+    mut gone: impl FnMut() -> Option<String>,
+) -> serde_json::Value {
+    let start = Instant::now();
+    loop {
+        if let Some(status) = read_status(path)
+            && done(&status)
+        {
+            return status;
+        }
+        if let Some(reason) = gone() {
+            panic!("{reason} while waiting for {what}; last status {:?}", read_status(path));
+        }
+        assert!(start.elapsed() < timeout, "timed out waiting for {what}; last status: {:#?}", read_status(path));
+        std::thread::sleep(Duration::from_millis(200));
     }
 }
 
@@ -233,6 +273,7 @@ impl Drop for Learner {
             // Its actors too: killed, the learner cannot reap them, and actors outlive a
             // learner on purpose (they wait for it to come back).
             for child in children_of(self.child.id()) {
+                // Not `signal`: a panic while dropping during a failed test would abort.
                 let _ = Command::new("kill").args(["-KILL", &child.to_string()]).status();
             }
             let _ = self.child.kill();

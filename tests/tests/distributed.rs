@@ -99,7 +99,7 @@ fn an_actor_waiting_for_an_absent_learner_exits_on_sigterm() {
         .unwrap();
     std::thread::sleep(Duration::from_millis(1500));
     assert!(actor.try_wait().unwrap().is_none(), "it waits for the learner");
-    Command::new("kill").args(["-TERM", &actor.id().to_string()]).status().unwrap();
+    crawler_tests::signal(actor.id(), "TERM");
     let start = std::time::Instant::now();
     let status = loop {
         if let Some(status) = actor.try_wait().unwrap() {

@@ -10,9 +10,9 @@
 
 use std::path::{Path, PathBuf};
 use std::process::{Command, Output};
-use std::time::{Duration, Instant};
+use std::time::Duration;
 
-use crawler_tests::{free_port, repo_root, u64_at};
+use crawler_tests::{free_port, read_status, repo_root, u64_at, wait_for_status};
 
 fn compose_tool() -> Vec<String> {
     let plugin = Command::new("docker").args(["compose", "version"]).output().is_ok_and(|o| o.status.success());
@@ -44,21 +44,16 @@ impl Compose {
         output
     }
 
+    fn status_path(&self) -> PathBuf {
+        self.runs.join("docker/status.json")
+    }
+
     fn status(&self) -> Option<serde_json::Value> {
-        serde_json::from_str(&std::fs::read_to_string(self.runs.join("docker/status.json")).ok()?).ok()
+        read_status(&self.status_path())
     }
 
     fn wait_for(&self, timeout: Duration, what: &str, done: impl Fn(&serde_json::Value) -> bool) -> serde_json::Value {
-        let start = Instant::now();
-        loop {
-            if let Some(status) = self.status()
-                && done(&status)
-            {
-                return status;
-            }
-            assert!(start.elapsed() < timeout, "timed out waiting for {what}; last status: {:#?}", self.status());
-            std::thread::sleep(Duration::from_millis(250));
-        }
+        wait_for_status(&self.status_path(), timeout, what, done, || None)
     }
 
     fn container(&self, service: &str, index: u32) -> String {

@@ -164,19 +164,9 @@ fn a_kill_during_a_checkpoint_write_keeps_the_previous_checkpoint_and_the_run_re
     let runs = tempfile::tempdir().unwrap();
     let port = free_port();
     let checkpoints = runs.path().join("torn/checkpoints");
-    let mut learner = {
-        // Every save pauses 1.5 s between writing its files and renaming them into place.
-        let mut command = Command::new(binary("learner"));
-        command
-            .current_dir(crawler_tests::repo_root())
-            .args(["--config", SMOKE, "--run", "torn", "--actors", "2"])
-            .args(["--set", &format!("learner.listen=[\"tcp/127.0.0.1:{port}\"]")])
-            .args(["--set", &format!("learner.runs_dir=\"{}\"", runs.path().display())])
-            .args(["--actor-bin", binary("actor").to_str().unwrap()])
-            .env("CRAWLER_FAULT_CHECKPOINT_PAUSE_MS", "1500")
-            .stderr(std::process::Stdio::null());
-        command.spawn().unwrap()
-    };
+    // Every save pauses 1.5 s between writing its files and renaming them into place.
+    let pause = [("CRAWLER_FAULT_CHECKPOINT_PAUSE_MS", "1500")];
+    let mut learner = Learner::start_on_with_env(port, SMOKE, runs.path(), "torn", 2, &[], &pause);
     let start = Instant::now();
     let partial = loop {
         let entries: Vec<String> = std::fs::read_dir(&checkpoints)
@@ -192,9 +182,9 @@ fn a_kill_during_a_checkpoint_write_keeps_the_previous_checkpoint_and_the_run_re
         std::thread::sleep(Duration::from_millis(20));
     };
     // Kill the learner (its actors are its children: end them too) mid-write.
-    let children = crawler_tests::children_of(learner.id());
-    signal(learner.id(), "KILL");
-    let _ = learner.wait();
+    let children = crawler_tests::children_of(learner.child.id());
+    signal(learner.child.id(), "KILL");
+    let _ = learner.child.wait();
     for child in children {
         signal(child, "KILL");
     }

@@ -51,9 +51,7 @@ struct Args {
 
 fn main() -> anyhow::Result<()> {
     crawler_actor::cli::init_logging();
-    let args = Args::parse();
-
-    let mut args = args;
+    let mut args = Args::parse();
     if args.or_resume
         && let Some(run) = &args.run
     {
