@@ -3,10 +3,16 @@
 # one per actor, all X.509 v3 with the extensions rustls requires (v1 certificates are
 # rejected). Keys are P-256 ECDSA.
 #
+# The subject common name (CN) is the role the learner's access-control policy checks
+# (learner/src/access_control.rs): every actor certificate has CN=crawler-actor, the observer
+# certificate (read-only monitoring) CN=crawler-observer. Each actor's own name
+# (crawler-actor-<i>) is in its subjectAltName and its serial number differs.
+#
 # Usage: deploy/make-tls.sh OUT_DIR LEARNER_HOST [ACTORS]
 #   LEARNER_HOST: the name or IP actors use to reach the learner (goes in its subjectAltName)
 #   ACTORS:       how many actor certificates to make (default 4)
-# Produces OUT_DIR/ca.pem, learner.{pem,key}, actor-<i>.{pem,key}. Keep ca.key private.
+# Produces OUT_DIR/ca.pem, learner.{pem,key}, actor-<i>.{pem,key}, observer.{pem,key}.
+# Keep ca.key private. Rerunning reuses the CA and reissues the other certificates.
 set -euo pipefail
 out="${1:?usage: make-tls.sh OUT_DIR LEARNER_HOST [ACTORS]}"
 host="${2:?usage: make-tls.sh OUT_DIR LEARNER_HOST [ACTORS]}"
@@ -47,6 +53,7 @@ EXT
 
 issue learner "$host" "serverAuth,clientAuth" "$san"
 for ((i = 0; i < actors; i++)); do
-  issue "actor-$i" "crawler-actor-$i" "clientAuth,serverAuth" "DNS:crawler-actor-$i"
+  issue "actor-$i" "crawler-actor" "clientAuth" "DNS:crawler-actor-$i"
 done
-echo "TLS material in $(pwd): ca.pem, learner.{pem,key}, actor-0..$((actors - 1)).{pem,key}" >&2
+issue observer "crawler-observer" "clientAuth" "DNS:crawler-observer"
+echo "TLS material in $(pwd): ca.pem, learner.{pem,key}, actor-0..$((actors - 1)).{pem,key}, observer.{pem,key}" >&2

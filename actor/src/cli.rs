@@ -23,3 +23,126 @@ pub fn zenoh_overrides(pairs: &[String]) -> Result<Vec<(String, String)>, String
         })
         .collect()
 }
+
+/// Which side of a TLS link a process is on: the learner listens, actors connect.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum TlsSide {
+    Listen,
+    Connect,
+}
+
+/// The mutual-TLS material of one process (as `deploy/make-tls.sh` makes it): the CA that
+/// signs every certificate of the deployment, this process's certificate and its key.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct TlsFiles {
+    pub ca_certificate: std::path::PathBuf,
+    pub certificate: std::path::PathBuf,
+    pub private_key: std::path::PathBuf,
+}
+
+impl TlsFiles {
+    /// All three paths or none: a half-configured link would silently fall back to no client
+    /// certificate, so that is an error that says which flag is missing.
+    pub fn from_flags(
+        ca_certificate: Option<std::path::PathBuf>,
+        certificate: Option<std::path::PathBuf>,
+        private_key: Option<std::path::PathBuf>,
+    ) -> Result<Option<Self>, String> {
+        match (ca_certificate, certificate, private_key) {
+            (None, None, None) => Ok(None),
+            (Some(ca_certificate), Some(certificate), Some(private_key)) => {
+                let files = Self { ca_certificate, certificate, private_key };
+                files.check_readable()?;
+                Ok(Some(files))
+            }
+            (ca, cert, key) => {
+                let missing: Vec<&str> =
+                    [(ca.is_none(), "--tls-ca"), (cert.is_none(), "--tls-cert"), (key.is_none(), "--tls-key")]
+                        .into_iter()
+                        .filter_map(|(missing, flag)| missing.then_some(flag))
+                        .collect();
+                Err(format!(
+                    "mutual TLS needs --tls-ca, --tls-cert and --tls-key together; missing {} (deploy/make-tls.sh makes all three)",
+                    missing.join(", ")
+                ))
+            }
+        }
+    }
+
+    fn check_readable(&self) -> Result<(), String> {
+        for (flag, path) in
+            [("--tls-ca", &self.ca_certificate), ("--tls-cert", &self.certificate), ("--tls-key", &self.private_key)]
+        {
+            let text = std::fs::read_to_string(path).map_err(|e| format!("{flag} {}: {e}", path.display()))?;
+            if !text.contains("-----BEGIN ") {
+                return Err(format!("{flag} {}: not a PEM file (expected a -----BEGIN … block)", path.display()));
+            }
+        }
+        Ok(())
+    }
+
+    /// zenoh settings (KEY, JSON5) for a TLS link that requires certificates on both ends.
+    pub fn zenoh_settings(&self, side: TlsSide) -> Vec<(String, String)> {
+        let (key, certificate) = match side {
+            TlsSide::Listen => ("listen_private_key", "listen_certificate"),
+            TlsSide::Connect => ("connect_private_key", "connect_certificate"),
+        };
+        let quoted = |path: &std::path::Path| format!("{:?}", path.display().to_string());
+        vec![
+            ("transport/link/tls/root_ca_certificate".into(), quoted(&self.ca_certificate)),
+            (format!("transport/link/tls/{key}"), quoted(&self.private_key)),
+            (format!("transport/link/tls/{certificate}"), quoted(&self.certificate)),
+            ("transport/link/tls/enable_mtls".into(), "true".into()),
+        ]
+    }
+}
+
+/// Every endpoint must be a `tls/` one when TLS material is given: a `tcp/` endpoint beside
+/// it would carry the same traffic unauthenticated.
+pub fn check_tls_endpoints(endpoints: &[String], flag: &str) -> Result<(), String> {
+    match endpoints.iter().find(|e| !e.starts_with("tls/")) {
+        Some(plain) => {
+            Err(format!("{flag} {plain:?} is not a tls/ endpoint, but TLS material was given; use e.g. tls/HOST:7447"))
+        }
+        None => Ok(()),
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn tls_flags_come_all_together_or_not_at_all() {
+        assert_eq!(TlsFiles::from_flags(None, None, None), Ok(None));
+        let error = TlsFiles::from_flags(Some("ca.pem".into()), None, Some("a.key".into())).unwrap_err();
+        assert!(error.contains("missing --tls-cert"), "{error}");
+        let error =
+            TlsFiles::from_flags(Some("/nonexistent/ca.pem".into()), Some("a".into()), Some("b".into())).unwrap_err();
+        assert!(error.contains("--tls-ca /nonexistent/ca.pem"), "{error}");
+    }
+
+    #[test]
+    fn a_file_without_pem_blocks_is_named() {
+        let dir = std::env::temp_dir().join(format!("crawler-tls-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let pem = dir.join("ok.pem");
+        let junk = dir.join("junk.key");
+        std::fs::write(&pem, "-----BEGIN CERTIFICATE-----\nAA==\n-----END CERTIFICATE-----\n").unwrap();
+        std::fs::write(&junk, "not a key").unwrap();
+        let error = TlsFiles::from_flags(Some(pem.clone()), Some(pem.clone()), Some(junk)).unwrap_err();
+        assert!(error.starts_with("--tls-key") && error.contains("not a PEM file"), "{error}");
+        let files = TlsFiles::from_flags(Some(pem.clone()), Some(pem.clone()), Some(pem)).unwrap().unwrap();
+        let settings = files.zenoh_settings(TlsSide::Connect);
+        assert!(settings.iter().any(|(k, v)| k == "transport/link/tls/connect_certificate" && v.contains("ok.pem")));
+        assert!(settings.iter().any(|(k, v)| k == "transport/link/tls/enable_mtls" && v == "true"));
+        std::fs::remove_dir_all(&dir).unwrap();
+    }
+
+    #[test]
+    fn plain_endpoints_beside_tls_material_are_refused() {
+        assert!(check_tls_endpoints(&["tls/learner:7447".into()], "--connect").is_ok());
+        let error = check_tls_endpoints(&["tls/a:1".into(), "tcp/b:2".into()], "--connect").unwrap_err();
+        assert!(error.contains("\"tcp/b:2\""), "{error}");
+    }
+}

@@ -7,9 +7,11 @@
 //! - [`rate`]: the samples-per-insert limiter.
 //! - [`checkpoint`]: atomic, checksummed checkpoints; [`config`]: the TOML presets.
 //! - [`service`]: the learner process (router, ingest, training thread, weights).
+//! - [`access_control`]: the router's zenoh ACL for runs served over mutual TLS.
 //! - [`metrics`]: TensorBoard event files and `metrics.csv`.
 //! - [`evaluate`], [`viz`]: greedy episodes, plots and the gait animation.
 
+pub mod access_control;
 pub mod adam;
 pub mod checkpoint;
 pub mod config;

@@ -209,13 +209,19 @@ pub struct Actor {
 impl Actor {
     /// `actor --connect tcp/127.0.0.1:<port> --id <id> --run <run>`, its log in `log_dir`.
     pub fn start(port: u16, id: u32, run: &str, log_dir: &Path) -> Self {
+        let connect = format!("tcp/127.0.0.1:{port}");
+        Self::start_args(&["--connect", &connect, "--id", &id.to_string(), "--run", run], log_dir)
+    }
+
+    /// `actor <args>`, its log in `log_dir`.
+    pub fn start_args(args: &[&str], log_dir: &Path) -> Self {
         let log = log_dir.join(format!(
-            "actor-{id}-{}.log",
+            "actor-{}.log",
             std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).unwrap().as_nanos()
         ));
         let file = std::fs::File::create(&log).unwrap();
         let child = Command::new(binary("actor"))
-            .args(["--connect", &format!("tcp/127.0.0.1:{port}"), "--id", &id.to_string(), "--run", run])
+            .args(args)
             .env("RUST_LOG", "info,zenoh=warn")
             .stdout(Stdio::null())
             .stderr(file)

@@ -2,12 +2,15 @@
 //!
 //! `actor --connect tcp/LEARNER:7447 --id 3` joins the learner's run, acts with the weights
 //! it broadcasts and publishes transitions until the learner stops the run or it gets Ctrl-C.
+//! Across machines: `actor --connect tls/LEARNER:7447 --tls-ca ca.pem --tls-cert actor-0.pem
+//! --tls-key actor-0.key` (mutual TLS; see deploy/README.md).
 
 use std::sync::Arc;
 use std::sync::atomic::AtomicBool;
 
 use anyhow::Context;
 use clap::Parser;
+use crawler_actor::cli::{TlsFiles, TlsSide, check_tls_endpoints};
 use crawler_actor::node::{self, ActorOptions};
 
 #[derive(Debug, Parser)]
@@ -29,6 +32,16 @@ struct Args {
     /// Act greedily (ε = 0) and publish evaluation stats only.
     #[arg(long)]
     evaluator: bool,
+    /// Mutual TLS: the CA certificate that signed the learner's (PEM). With --tls-cert and
+    /// --tls-key; every --connect endpoint must then be tls/.
+    #[arg(long, env = "CRAWLER_TLS_CA", value_name = "PEM")]
+    tls_ca: Option<std::path::PathBuf>,
+    /// Mutual TLS: this actor's certificate (PEM, from deploy/make-tls.sh).
+    #[arg(long, env = "CRAWLER_TLS_CERT", value_name = "PEM")]
+    tls_cert: Option<std::path::PathBuf>,
+    /// Mutual TLS: this actor's private key (PEM).
+    #[arg(long, env = "CRAWLER_TLS_KEY", value_name = "PEM")]
+    tls_key: Option<std::path::PathBuf>,
     /// Extra zenoh settings, KEY=JSON5 (e.g. transport/link/tls/root_ca_certificate="/ca.pem").
     #[arg(long = "zenoh", value_name = "KEY=JSON5", env = "CRAWLER_ZENOH", value_delimiter = ';')]
     zenoh: Vec<String>,
@@ -53,7 +66,13 @@ fn parse_id(text: &str) -> Result<ActorId, String> {
 fn main() -> anyhow::Result<()> {
     crawler_actor::cli::init_logging();
     let args = Args::parse();
-    let zenoh_overrides = crawler_actor::cli::zenoh_overrides(&args.zenoh).map_err(anyhow::Error::msg)?;
+    let mut zenoh_overrides = Vec::new();
+    if let Some(tls) = TlsFiles::from_flags(args.tls_ca, args.tls_cert, args.tls_key).map_err(anyhow::Error::msg)? {
+        check_tls_endpoints(&args.connect, "--connect").map_err(anyhow::Error::msg)?;
+        zenoh_overrides.extend(tls.zenoh_settings(TlsSide::Connect));
+    }
+    // Explicit --zenoh settings come last, so they win.
+    zenoh_overrides.extend(crawler_actor::cli::zenoh_overrides(&args.zenoh).map_err(anyhow::Error::msg)?);
     let options = ActorOptions {
         connect: args.connect,
         id: match args.id {

@@ -9,9 +9,10 @@ use std::time::{Duration, Instant};
 
 use anyhow::{Context, bail};
 use clap::Parser;
-use crawler_learner::checkpoint;
+use crawler_actor::cli::{TlsFiles, TlsSide, check_tls_endpoints};
 use crawler_learner::config::TrainConfig;
 use crawler_learner::service::{self, ServiceOptions};
+use crawler_learner::{access_control, checkpoint};
 use tracing::{info, warn};
 
 #[derive(Debug, Parser)]
@@ -41,7 +42,18 @@ struct Args {
     /// target networks are copied; the optimiser, replay and counters start fresh.
     #[arg(long, value_name = "CHECKPOINT", conflicts_with = "resume")]
     init_from: Option<PathBuf>,
-    /// Extra zenoh settings, KEY=JSON5 (TLS, access control).
+    /// Mutual TLS for remote actors: the CA certificate (PEM) that signed every certificate of
+    /// the deployment. With --tls-cert and --tls-key. Turns on the access-control policy
+    /// (learner/src/access_control.rs); learner.listen must then hold only tls/ endpoints.
+    #[arg(long, env = "CRAWLER_TLS_CA", value_name = "PEM")]
+    tls_ca: Option<PathBuf>,
+    /// Mutual TLS: the learner's certificate (PEM, from deploy/make-tls.sh).
+    #[arg(long, env = "CRAWLER_TLS_CERT", value_name = "PEM")]
+    tls_cert: Option<PathBuf>,
+    /// Mutual TLS: the learner's private key (PEM).
+    #[arg(long, env = "CRAWLER_TLS_KEY", value_name = "PEM")]
+    tls_key: Option<PathBuf>,
+    /// Extra zenoh settings, KEY=JSON5; applied last, so they override the TLS settings.
     #[arg(long = "zenoh", value_name = "KEY=JSON5", value_delimiter = ';')]
     zenoh: Vec<String>,
     /// The actor executable (default: `actor` beside this one).
@@ -82,7 +94,22 @@ fn main() -> anyhow::Result<()> {
             run_dir.display()
         );
     }
-    let zenoh_overrides = crawler_actor::cli::zenoh_overrides(&args.zenoh).map_err(anyhow::Error::msg)?;
+    let mut zenoh_overrides = Vec::new();
+    let tls = TlsFiles::from_flags(args.tls_ca.clone(), args.tls_cert.clone(), args.tls_key.clone())
+        .map_err(anyhow::Error::msg)?;
+    if let Some(tls) = tls {
+        check_tls_endpoints(&config.learner.listen, "learner.listen").map_err(anyhow::Error::msg)?;
+        if args.actors > 0 {
+            bail!(
+                "with mutual TLS the learner starts no local actors (they would need certificates of their own): \
+                 pass --actors 0 and start actors with --tls-ca/--tls-cert/--tls-key"
+            );
+        }
+        zenoh_overrides.extend(tls.zenoh_settings(TlsSide::Listen));
+        zenoh_overrides.push(("access_control".into(), access_control::policy(&run_id).to_string()));
+        info!("mutual TLS on; access control: actors and observers by certificate CN, everything else denied");
+    }
+    zenoh_overrides.extend(crawler_actor::cli::zenoh_overrides(&args.zenoh).map_err(anyhow::Error::msg)?);
     let init_from = match &args.init_from {
         Some(path) => {
             let checkpoint = checkpoint::load(path).with_context(|| format!("--init-from {}", path.display()))?;
