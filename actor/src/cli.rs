@@ -40,18 +40,34 @@ pub struct TlsFiles {
     pub private_key: std::path::PathBuf,
 }
 
-impl TlsFiles {
+/// The three mutual-TLS flags every binary that talks to a learner takes (`#[command(flatten)]`).
+#[derive(Debug, Clone, Default, clap::Args)]
+pub struct TlsArgs {
+    /// Mutual TLS: the CA certificate (PEM) that signed every certificate of the deployment.
+    /// With --tls-cert and --tls-key; every endpoint must then be tls/, and a learner enforces
+    /// its access-control policy (learner/src/access_control.rs).
+    #[arg(long, env = "CRAWLER_TLS_CA", value_name = "PEM")]
+    pub tls_ca: Option<std::path::PathBuf>,
+    /// Mutual TLS: this process's certificate (PEM, from deploy/make-tls.sh).
+    #[arg(long, env = "CRAWLER_TLS_CERT", value_name = "PEM")]
+    pub tls_cert: Option<std::path::PathBuf>,
+    /// Mutual TLS: this process's private key (PEM).
+    #[arg(long, env = "CRAWLER_TLS_KEY", value_name = "PEM")]
+    pub tls_key: Option<std::path::PathBuf>,
+}
+
+impl TlsArgs {
     /// All three paths or none: a half-configured link would silently fall back to no client
     /// certificate, so that is an error that says which flag is missing.
-    pub fn from_flags(
-        ca_certificate: Option<std::path::PathBuf>,
-        certificate: Option<std::path::PathBuf>,
-        private_key: Option<std::path::PathBuf>,
-    ) -> Result<Option<Self>, String> {
-        match (ca_certificate, certificate, private_key) {
+    pub fn files(&self) -> Result<Option<TlsFiles>, String> {
+        match (&self.tls_ca, &self.tls_cert, &self.tls_key) {
             (None, None, None) => Ok(None),
             (Some(ca_certificate), Some(certificate), Some(private_key)) => {
-                let files = Self { ca_certificate, certificate, private_key };
+                let files = TlsFiles {
+                    ca_certificate: ca_certificate.clone(),
+                    certificate: certificate.clone(),
+                    private_key: private_key.clone(),
+                };
                 files.check_readable()?;
                 Ok(Some(files))
             }
@@ -68,7 +84,9 @@ impl TlsFiles {
             }
         }
     }
+}
 
+impl TlsFiles {
     fn check_readable(&self) -> Result<(), String> {
         for (flag, path) in
             [("--tls-ca", &self.ca_certificate), ("--tls-cert", &self.certificate), ("--tls-key", &self.private_key)]
@@ -112,13 +130,16 @@ pub fn check_tls_endpoints(endpoints: &[String], flag: &str) -> Result<(), Strin
 mod tests {
     use super::*;
 
+    fn flags(ca: Option<&str>, cert: Option<&str>, key: Option<&str>) -> TlsArgs {
+        TlsArgs { tls_ca: ca.map(Into::into), tls_cert: cert.map(Into::into), tls_key: key.map(Into::into) }
+    }
+
     #[test]
     fn tls_flags_come_all_together_or_not_at_all() {
-        assert_eq!(TlsFiles::from_flags(None, None, None), Ok(None));
-        let error = TlsFiles::from_flags(Some("ca.pem".into()), None, Some("a.key".into())).unwrap_err();
+        assert_eq!(flags(None, None, None).files(), Ok(None));
+        let error = flags(Some("ca.pem"), None, Some("a.key")).files().unwrap_err();
         assert!(error.contains("missing --tls-cert"), "{error}");
-        let error =
-            TlsFiles::from_flags(Some("/nonexistent/ca.pem".into()), Some("a".into()), Some("b".into())).unwrap_err();
+        let error = flags(Some("/nonexistent/ca.pem"), Some("a"), Some("b")).files().unwrap_err();
         assert!(error.contains("--tls-ca /nonexistent/ca.pem"), "{error}");
     }
 
@@ -130,9 +151,10 @@ mod tests {
         let junk = dir.join("junk.key");
         std::fs::write(&pem, "-----BEGIN CERTIFICATE-----\nAA==\n-----END CERTIFICATE-----\n").unwrap();
         std::fs::write(&junk, "not a key").unwrap();
-        let error = TlsFiles::from_flags(Some(pem.clone()), Some(pem.clone()), Some(junk)).unwrap_err();
+        let (pem_path, junk_path) = (pem.to_str().unwrap(), junk.to_str().unwrap());
+        let error = flags(Some(pem_path), Some(pem_path), Some(junk_path)).files().unwrap_err();
         assert!(error.starts_with("--tls-key") && error.contains("not a PEM file"), "{error}");
-        let files = TlsFiles::from_flags(Some(pem.clone()), Some(pem.clone()), Some(pem)).unwrap().unwrap();
+        let files = flags(Some(pem_path), Some(pem_path), Some(pem_path)).files().unwrap().unwrap();
         let settings = files.zenoh_settings(TlsSide::Connect);
         assert!(settings.iter().any(|(k, v)| k == "transport/link/tls/connect_certificate" && v.contains("ok.pem")));
         assert!(settings.iter().any(|(k, v)| k == "transport/link/tls/enable_mtls" && v == "true"));

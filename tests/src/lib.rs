@@ -314,3 +314,33 @@ pub fn children_of(pid: u32) -> Vec<u32> {
         })
         .collect()
 }
+
+/// The version `probe forge` stamps on forged weights: far above anything a test run publishes.
+pub const FORGED_VERSION: u64 = 4_000_000_000;
+
+const OBS_DIM: usize = 40;
+
+/// A transition batch of `n` transitions that passes every check of the learner's ingest
+/// (for the bad-input injector and the forging probe, which alter it or put it where it does
+/// not belong).
+pub fn valid_batch(run: &str, id: u32, sequence: u64, n: usize) -> crawler_proto::TransitionBatch {
+    crawler_proto::TransitionBatch {
+        protocol_version: crawler_proto::PROTOCOL_VERSION,
+        run_id: run.to_string(),
+        actor_id: id,
+        sequence,
+        incarnation: 7,
+        obs_dim: OBS_DIM as u32,
+        env_ids: vec![0; n],
+        observations: vec![0.5; n * OBS_DIM],
+        next_observations: vec![0.5; n * OBS_DIM],
+        actions: vec![1; n],
+        rewards: vec![0.1; n],
+        terminated: vec![false; n],
+        truncated: vec![false; n],
+        priorities: vec![],
+        weights_version: 1,
+        physics_steps: n as u64 * 10,
+        count: n as u32,
+    }
+}

@@ -12,11 +12,9 @@ use std::process::{Child, Command, Stdio};
 use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 
-use crawler_tests::{Actor, Learner, binary, free_port, repo_root, u64_at};
+use crawler_tests::{Actor, FORGED_VERSION, Learner, binary, free_port, repo_root, u64_at};
 
 const SMOKE: &str = "configs/smoke.toml";
-/// The version `probe forge` stamps on forged weights.
-const FORGED_VERSION: u64 = 4_000_000_000;
 
 /// TLS material for a deployment: `make-tls.sh DIR localhost 2`.
 fn make_tls(dir: &Path) -> PathBuf {

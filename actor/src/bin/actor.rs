@@ -10,7 +10,7 @@ use std::sync::atomic::AtomicBool;
 
 use anyhow::Context;
 use clap::Parser;
-use crawler_actor::cli::{TlsFiles, TlsSide, check_tls_endpoints};
+use crawler_actor::cli::{TlsArgs, TlsSide, check_tls_endpoints};
 use crawler_actor::node::{self, ActorOptions};
 
 #[derive(Debug, Parser)]
@@ -32,16 +32,8 @@ struct Args {
     /// Act greedily (ε = 0) and publish evaluation stats only.
     #[arg(long)]
     evaluator: bool,
-    /// Mutual TLS: the CA certificate that signed the learner's (PEM). With --tls-cert and
-    /// --tls-key; every --connect endpoint must then be tls/.
-    #[arg(long, env = "CRAWLER_TLS_CA", value_name = "PEM")]
-    tls_ca: Option<std::path::PathBuf>,
-    /// Mutual TLS: this actor's certificate (PEM, from deploy/make-tls.sh).
-    #[arg(long, env = "CRAWLER_TLS_CERT", value_name = "PEM")]
-    tls_cert: Option<std::path::PathBuf>,
-    /// Mutual TLS: this actor's private key (PEM).
-    #[arg(long, env = "CRAWLER_TLS_KEY", value_name = "PEM")]
-    tls_key: Option<std::path::PathBuf>,
+    #[command(flatten)]
+    tls: TlsArgs,
     /// Extra zenoh settings, KEY=JSON5 (e.g. transport/link/tls/root_ca_certificate="/ca.pem").
     #[arg(long = "zenoh", value_name = "KEY=JSON5", env = "CRAWLER_ZENOH", value_delimiter = ';')]
     zenoh: Vec<String>,
@@ -67,7 +59,7 @@ fn main() -> anyhow::Result<()> {
     crawler_actor::cli::init_logging();
     let args = Args::parse();
     let mut zenoh_overrides = Vec::new();
-    if let Some(tls) = TlsFiles::from_flags(args.tls_ca, args.tls_cert, args.tls_key).map_err(anyhow::Error::msg)? {
+    if let Some(tls) = args.tls.files().map_err(anyhow::Error::msg)? {
         check_tls_endpoints(&args.connect, "--connect").map_err(anyhow::Error::msg)?;
         zenoh_overrides.extend(tls.zenoh_settings(TlsSide::Connect));
     }

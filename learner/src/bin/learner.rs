@@ -9,7 +9,7 @@ use std::time::{Duration, Instant};
 
 use anyhow::{Context, bail};
 use clap::Parser;
-use crawler_actor::cli::{TlsFiles, TlsSide, check_tls_endpoints};
+use crawler_actor::cli::{TlsArgs, TlsSide, check_tls_endpoints};
 use crawler_learner::config::TrainConfig;
 use crawler_learner::service::{self, ServiceOptions};
 use crawler_learner::{access_control, checkpoint};
@@ -42,17 +42,11 @@ struct Args {
     /// target networks are copied; the optimiser, replay and counters start fresh.
     #[arg(long, value_name = "CHECKPOINT", conflicts_with = "resume")]
     init_from: Option<PathBuf>,
-    /// Mutual TLS for remote actors: the CA certificate (PEM) that signed every certificate of
-    /// the deployment. With --tls-cert and --tls-key. Turns on the access-control policy
-    /// (learner/src/access_control.rs); learner.listen must then hold only tls/ endpoints.
-    #[arg(long, env = "CRAWLER_TLS_CA", value_name = "PEM")]
-    tls_ca: Option<PathBuf>,
-    /// Mutual TLS: the learner's certificate (PEM, from deploy/make-tls.sh).
-    #[arg(long, env = "CRAWLER_TLS_CERT", value_name = "PEM")]
-    tls_cert: Option<PathBuf>,
-    /// Mutual TLS: the learner's private key (PEM).
-    #[arg(long, env = "CRAWLER_TLS_KEY", value_name = "PEM")]
-    tls_key: Option<PathBuf>,
+    /// Mutual TLS for remote actors (--tls-ca, --tls-cert, --tls-key): requires client
+    /// certificates and turns on the access-control policy; learner.listen must then hold only
+    /// tls/ endpoints.
+    #[command(flatten)]
+    tls: TlsArgs,
     /// Extra zenoh settings, KEY=JSON5; applied last, so they override the TLS settings.
     #[arg(long = "zenoh", value_name = "KEY=JSON5", value_delimiter = ';')]
     zenoh: Vec<String>,
@@ -95,9 +89,7 @@ fn main() -> anyhow::Result<()> {
         );
     }
     let mut zenoh_overrides = Vec::new();
-    let tls = TlsFiles::from_flags(args.tls_ca.clone(), args.tls_cert.clone(), args.tls_key.clone())
-        .map_err(anyhow::Error::msg)?;
-    if let Some(tls) = tls {
+    if let Some(tls) = args.tls.files().map_err(anyhow::Error::msg)? {
         check_tls_endpoints(&config.learner.listen, "learner.listen").map_err(anyhow::Error::msg)?;
         if args.actors > 0 {
             bail!(

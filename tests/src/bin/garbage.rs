@@ -11,7 +11,8 @@ use std::collections::BTreeMap;
 
 use anyhow::Context;
 use clap::Parser;
-use crawler_proto::{self as proto, PROTOCOL_VERSION, keys};
+use crawler_proto::{self as proto, keys};
+use crawler_tests::valid_batch;
 use prost::Message;
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
@@ -29,30 +30,6 @@ struct Args {
     id: u32,
     #[arg(long, default_value_t = 5)]
     rounds: u32,
-}
-
-const OBS_DIM: usize = 40;
-
-fn valid_batch(run: &str, id: u32, sequence: u64, n: usize) -> proto::TransitionBatch {
-    proto::TransitionBatch {
-        protocol_version: PROTOCOL_VERSION,
-        run_id: run.to_string(),
-        actor_id: id,
-        sequence,
-        incarnation: 7,
-        obs_dim: OBS_DIM as u32,
-        env_ids: vec![0; n],
-        observations: vec![0.5; n * OBS_DIM],
-        next_observations: vec![0.5; n * OBS_DIM],
-        actions: vec![1; n],
-        rewards: vec![0.1; n],
-        terminated: vec![false; n],
-        truncated: vec![false; n],
-        priorities: vec![],
-        weights_version: 1,
-        physics_steps: n as u64 * 10,
-        count: n as u32,
-    }
 }
 
 #[tokio::main(flavor = "multi_thread", worker_threads = 1)]

@@ -15,25 +15,19 @@ use std::time::{Duration, Instant};
 
 use anyhow::Context;
 use clap::{Parser, Subcommand};
-use crawler_actor::cli::{TlsFiles, TlsSide};
+use crawler_actor::cli::{TlsArgs, TlsSide};
 use crawler_proto::{self as proto, PROTOCOL_VERSION, keys};
+use crawler_tests::{FORGED_VERSION, valid_batch};
 use prost::Message;
 use zenoh::qos::CongestionControl;
-
-/// The version forged weights carry: far above anything a test run publishes.
-const FORGED_VERSION: u64 = 4_000_000_000;
 
 #[derive(Debug, Parser)]
 struct Args {
     /// The learner's endpoint, e.g. tls/localhost:7447.
     #[arg(long)]
     connect: String,
-    #[arg(long)]
-    tls_ca: Option<std::path::PathBuf>,
-    #[arg(long)]
-    tls_cert: Option<std::path::PathBuf>,
-    #[arg(long)]
-    tls_key: Option<std::path::PathBuf>,
+    #[command(flatten)]
+    tls: TlsArgs,
     /// Extra zenoh settings, KEY=JSON5 (e.g. a CA but no client certificate).
     #[arg(long = "zenoh", value_delimiter = ';')]
     zenoh: Vec<String>,
@@ -61,7 +55,7 @@ async fn main() -> anyhow::Result<()> {
     crawler_actor::cli::init_logging();
     let args = Args::parse();
     let mut overrides = Vec::new();
-    if let Some(tls) = TlsFiles::from_flags(args.tls_ca, args.tls_cert, args.tls_key).map_err(anyhow::Error::msg)? {
+    if let Some(tls) = args.tls.files().map_err(anyhow::Error::msg)? {
         overrides.extend(tls.zenoh_settings(TlsSide::Connect));
     }
     overrides.extend(crawler_actor::cli::zenoh_overrides(&args.zenoh).map_err(anyhow::Error::msg)?);
@@ -130,26 +124,8 @@ async fn forge(session: &zenoh::Session, run: &str, id: u32, duration: Duration)
     let mut sequence = 0u64;
     while start.elapsed() < duration {
         sequence += 1;
-        let batch = proto::TransitionBatch {
-            protocol_version: PROTOCOL_VERSION,
-            run_id: run.to_string(),
-            actor_id: id,
-            sequence,
-            incarnation: 1,
-            obs_dim: 40,
-            env_ids: vec![0],
-            observations: vec![0.0; 40],
-            next_observations: vec![0.0; 40],
-            actions: vec![0],
-            rewards: vec![0.0],
-            terminated: vec![false],
-            truncated: vec![false],
-            priorities: vec![],
-            weights_version: genuine.version,
-            physics_steps: 1,
-            count: 1,
-        }
-        .encode_to_vec();
+        let batch = proto::TransitionBatch { weights_version: genuine.version, ..valid_batch(run, id, sequence, 1) }
+            .encode_to_vec();
         for (what, key, bytes) in [
             ("forged_weights", keys::weights(run), forged_weights.clone()),
             ("forged_stop", keys::control(run), stop.clone()),
