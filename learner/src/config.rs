@@ -47,6 +47,7 @@ pub struct DqnSection {
     pub loss: LossKind,
     pub max_grad_norm: Option<f64>,
     pub target_update: TargetUpdate,
+    pub reward_scale: f64,
     pub batch_size: usize,
     pub seed: u64,
 }
@@ -62,6 +63,7 @@ impl Default for DqnSection {
             loss: dqn.loss,
             max_grad_norm: dqn.max_grad_norm,
             target_update: dqn.target_update,
+            reward_scale: dqn.reward_scale,
             batch_size: 32,
             seed: 0,
         }
@@ -209,6 +211,9 @@ impl TrainConfig {
         if !(d.lr.is_finite() && d.lr > 0.0 && d.lr < 1.0) {
             return Err(invalid("dqn.lr", d.lr.to_string(), "a number in (0, 1)"));
         }
+        if !(d.reward_scale.is_finite() && d.reward_scale > 0.0) {
+            return Err(invalid("dqn.reward_scale", d.reward_scale.to_string(), "a positive number"));
+        }
         if !(1..=8192).contains(&d.batch_size) {
             return Err(invalid("dqn.batch_size", d.batch_size.to_string(), "an integer in 1..=8192"));
         }
@@ -301,6 +306,7 @@ impl TrainConfig {
             loss: d.loss,
             max_grad_norm: d.max_grad_norm,
             target_update: d.target_update,
+            reward_scale: d.reward_scale,
             seed: d.seed,
         }
     }

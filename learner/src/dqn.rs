@@ -44,6 +44,9 @@ pub struct DqnConfig {
     /// Clip the gradient's global L2 norm to this; none when absent.
     pub max_grad_norm: Option<f64>,
     pub target_update: TargetUpdate,
+    /// Multiplies the (n-step) returns in the TD target: Q-values scale with it, so it moves
+    /// them relative to the Huber loss's fixed threshold of 1 and to Adam's ε.
+    pub reward_scale: f64,
     /// Seed of torch's RNG for the initial weights.
     pub seed: u64,
 }
@@ -59,6 +62,7 @@ impl Default for DqnConfig {
             loss: LossKind::Mse,
             max_grad_norm: None,
             target_update: TargetUpdate::Hard { every: 25_000 },
+            reward_scale: 1.0,
             seed: 0,
         }
     }
@@ -109,8 +113,8 @@ impl Dqn {
         Self { config, online, target, optimizer, updates: 0 }
     }
 
-    /// The TD target r + discount · Q⁻(s', a*) with a* chosen by the online net (Double) or
-    /// the target net (vanilla).
+    /// The TD target scale · r + discount · Q⁻(s', a*) with a* chosen by the online net
+    /// (Double) or the target net (vanilla).
     pub fn td_targets(&self, batch: &Batch) -> Tensor {
         tch::no_grad(|| {
             let next_target_q = self.target.forward(&batch.next_observations);
@@ -120,7 +124,7 @@ impl Dqn {
             } else {
                 next_target_q.max_dim(1, false).0
             };
-            &batch.returns + &batch.discounts * bootstrap
+            &batch.returns * self.config.reward_scale + &batch.discounts * bootstrap
         })
     }
 

@@ -125,16 +125,20 @@ fn double_and_vanilla_targets_match_a_hand_computed_example() {
         discounts: Tensor::from_slice(&[0.9f32, 0.0]),
         weights: None,
     };
-    let targets = |double| {
-        let dqn = linear_dqn(double, &online, &target);
+    let targets = |double, reward_scale| {
+        let mut dqn = linear_dqn(double, &online, &target);
+        dqn.config.reward_scale = reward_scale;
         Vec::<f32>::try_from(dqn.td_targets(&batch)).unwrap()
     };
     // Double: 1 + 0.9 · Q⁻(s', 1) = 1 + 0.9 · 2; vanilla: 1 + 0.9 · max Q⁻(s') = 1 + 0.9 · 5.
     // The second sample terminated: its target is its reward alone.
-    let double = targets(true);
-    let vanilla = targets(false);
+    let double = targets(true, 1.0);
+    let vanilla = targets(false, 1.0);
     assert!((double[0] - 2.8).abs() < 1e-6 && (double[1] - 1.0).abs() < 1e-6, "{double:?}");
     assert!((vanilla[0] - 5.5).abs() < 1e-6 && (vanilla[1] - 1.0).abs() < 1e-6, "{vanilla:?}");
+    // A reward scale multiplies the returns only, not the bootstrapped value: 0.5 + 0.9 · 2.
+    let scaled = targets(true, 0.5);
+    assert!((scaled[0] - 2.3).abs() < 1e-6 && (scaled[1] - 0.5).abs() < 1e-6, "{scaled:?}");
 }
 
 #[test]

@@ -5,11 +5,12 @@
 //! configs/default.toml), `EVAL_EVERY_S` (default 30), `SET` (extra `KEY=VALUE` settings,
 //! separated by `;`, e.g. `env.direction="backward"`), `INIT_FROM` (a checkpoint to start
 //! from: transfer), `RUNS_DIR` and `RUN` (keep the run there, with its metrics and an
-//! `evaluations.json`; by default it lives in a temporary directory). About every `EVAL_EVERY_S` seconds the
-//! newest checkpoint is run for 10 greedy episodes of 20 s (`eval`). Prints each evaluation,
-//! the wall time of training to the first evaluation ≥ 0.5 m/s, the speed at 20 and 60
-//! minutes, and the env steps and updates done. Evaluation shares the machine with training,
-//! as a user's would.
+//! `evaluations.json`; by default it lives in a temporary directory), `ACTORS` (local actor
+//! processes, default 2; an Ape-X ladder's `exploration.actors` should match, via `SET`).
+//! About every `EVAL_EVERY_S` seconds the newest checkpoint is run for 10 greedy episodes of
+//! 20 s (`eval`). Prints each evaluation, the wall time of training to the first evaluation
+//! ≥ 0.5 m/s, the speed at 20 and 60 minutes, and the env steps and updates done. Evaluation
+//! shares the machine with training, as a user's would.
 #![allow(clippy::print_stdout, clippy::unwrap_used)]
 
 use std::path::PathBuf;
@@ -52,6 +53,7 @@ fn main() {
     let seed: u64 = env_or("SEED", 0);
     let config: String = env_or("CONFIG", "configs/default.toml".to_string());
     let eval_every: f64 = env_or("EVAL_EVERY_S", 30.0);
+    let actors: usize = env_or("ACTORS", 2);
     let temporary = tempfile::tempdir().unwrap();
     let runs_dir: PathBuf = std::env::var_os("RUNS_DIR").map_or_else(|| temporary.path().to_path_buf(), PathBuf::from);
     let run: String = env_or("RUN", "speed".to_string());
@@ -74,9 +76,11 @@ fn main() {
     if let Some(path) = &init_from {
         extra.extend(["--init-from", path.as_str()]);
     }
-    let mut learner = Learner::start_with(&config, &runs_dir, &run, 2, &extra);
+    let mut learner = Learner::start_with(&config, &runs_dir, &run, actors, &extra);
     let checkpoints = runs_dir.join(&run).join("checkpoints");
-    println!("config {config}, seed {seed}, {minutes} min, settings {settings:?}, init from {init_from:?}");
+    println!(
+        "config {config}, seed {seed}, {minutes} min, {actors} actors, settings {settings:?}, init from {init_from:?}"
+    );
     println!(
         "{:>8} {:>10} {:>12} {:>14} {:>16} {:>6}",
         "train s", "updates", "env steps", "physics steps", "speed m/s", "flips"
