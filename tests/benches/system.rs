@@ -11,11 +11,17 @@ use std::time::{Duration, Instant};
 
 use crawler_tests::{Learner, children_of, rss_mib, u64_at};
 
+const CONFIG: &str = "configs/default.toml";
+
 fn main() {
     let seconds: u64 = std::env::var("SYSTEM_BENCH_SECONDS").ok().and_then(|s| s.parse().ok()).unwrap_or(90);
     let runs = tempfile::tempdir().unwrap();
     let extra = ["--set", "learner.status_every_s=5.0"];
-    let mut learner = Learner::start_with("configs/default.toml", runs.path(), "bench", 2, &extra);
+    let capacity = crawler_learner::config::TrainConfig::load(std::path::Path::new(CONFIG), &[])
+        .unwrap_or_else(|e| panic!("{CONFIG}: {e}"))
+        .replay
+        .capacity;
+    let mut learner = Learner::start_with(CONFIG, runs.path(), "bench", 2, &extra);
     learner.wait_for(Duration::from_secs(60), "training to start", |s| u64_at(s, "/updates") > 0);
     let first = learner.status().unwrap();
     let start = Instant::now();
@@ -23,10 +29,9 @@ fn main() {
         "{:>6} {:>10} {:>10} {:>10} {:>12} {:>12} {:>10}",
         "t (s)", "learner", "actor 0", "actor 1", "updates/s", "ingest/s", "replay"
     );
-    // (learner, actors) RSS when the replay first reported full, and the latest.
+    // (learner, actors) RSS when the replay first reported its full capacity, and the latest.
     let mut at_full: Option<(f64, Vec<f64>)> = None;
     let mut latest: (f64, Vec<f64>) = (f64::NAN, Vec::new());
-    let mut previous_len = 0;
     while start.elapsed() < Duration::from_secs(seconds) {
         std::thread::sleep(Duration::from_secs(10));
         let pid = learner.child.id();
@@ -44,11 +49,9 @@ fn main() {
             status["env_steps_per_second"].as_f64().unwrap_or(f64::NAN),
             replay_len,
         );
-        // The replay is full when its length stops growing.
-        if at_full.is_none() && replay_len > 0 && replay_len == previous_len {
+        if at_full.is_none() && replay_len >= capacity as u64 {
             at_full = Some((learner_rss, actors.clone()));
         }
-        previous_len = replay_len;
         latest = (learner_rss, actors);
     }
     let last = learner.status().unwrap();

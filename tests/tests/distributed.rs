@@ -61,6 +61,12 @@ fn bad_configs_are_refused_with_the_key_or_path_named() {
     assert!(message.contains("dqn.lr") && message.contains("(0, 1)"), "{message}");
     let message = run(&["--config", "configs/smoke.toml", "--set", "env.action_repeat=0", "--actors", "0"]);
     assert!(message.contains("env.action_repeat"), "{message}");
+    let message = run(&["--config", "configs/smoke.toml", "--set", "dqn.reward_scale=0", "--actors", "0"]);
+    assert!(message.contains("dqn.reward_scale") && message.contains("positive"), "{message}");
+    // A run id that is no key-expression chunk (or a path) is refused before any actor starts.
+    let message = run(&["--config", "configs/smoke.toml", "--run", "lever-0.1", "--actors", "2"]);
+    assert!(message.contains("`lever-0.1`") && message.contains("A-Z a-z 0-9 _ -"), "{message}");
+    assert!(!message.contains("started local actors"), "{message}");
 }
 
 #[test]

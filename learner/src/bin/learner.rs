@@ -58,6 +58,10 @@ struct Args {
 fn main() -> anyhow::Result<()> {
     crawler_actor::cli::init_logging();
     let mut args = Args::parse();
+    // Before any path is built from it and before any actor is started.
+    for run in [&args.run, &args.resume].into_iter().flatten() {
+        crawler_proto::keys::check_run_id(run)?;
+    }
     if args.or_resume
         && let Some(run) = &args.run
     {
