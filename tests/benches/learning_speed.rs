@@ -88,7 +88,8 @@ fn main() {
     let mut evaluations: Vec<Evaluation> = Vec::new();
     let mut last_evaluated = -f64::INFINITY;
     loop {
-        let finished = matches!(learner.child.try_wait(), Ok(Some(_)));
+        let exit = learner.child.try_wait().ok().flatten();
+        let finished = exit.is_some();
         let newest = crawler_learner::checkpoint::list(&checkpoints).ok().and_then(|mut l| l.pop());
         if let Some(path) = newest
             && let Some(evaluation) = evaluate(&path)
@@ -108,7 +109,11 @@ fn main() {
             last_evaluated = evaluation.train_seconds;
             evaluations.push(evaluation);
         }
-        if finished {
+        if let Some(status) = exit {
+            if !status.success() && evaluations.is_empty() {
+                eprintln!("the learner exited with {status} before any evaluation: its log says why");
+                std::process::exit(1);
+            }
             break;
         }
         std::thread::sleep(Duration::from_secs(2));
