@@ -9,6 +9,8 @@ use std::path::{Path, PathBuf};
 use std::process::{Child, Command, ExitStatus, Stdio};
 use std::time::{Duration, Instant};
 
+use crawler_actor::env::OBS_DIM;
+
 /// A workspace binary of the same profile as the running test or bench, or from
 /// `CRAWLER_BIN_DIR` when set (long experiments run from a copy, so rebuilding the workspace
 /// meanwhile does not swap binaries under them).
@@ -317,8 +319,6 @@ pub fn children_of(pid: u32) -> Vec<u32> {
 
 /// The version `probe forge` stamps on forged weights: far above anything a test run publishes.
 pub const FORGED_VERSION: u64 = 4_000_000_000;
-
-const OBS_DIM: usize = 40;
 
 /// A transition batch of `n` transitions that passes every check of the learner's ingest
 /// (for the bad-input injector and the forging probe, which alter it or put it where it does
