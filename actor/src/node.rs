@@ -68,6 +68,8 @@ pub fn client_config(connect: &[String], overrides: &[(String, String)]) -> Resu
         ("connect/exit_on_failure", "false".to_string()),
         ("connect/retry", "{ period_init_ms: 250, period_max_ms: 1000, period_increase_factor: 2 }".to_string()),
         ("scouting/multicast/enabled", "false".to_string()),
+        // Nothing larger than the protocol's largest message is buffered (zenoh's default is 1 GiB).
+        ("transport/link/rx/max_message_size", proto::TRANSPORT_MAX_MESSAGE_BYTES.to_string()),
     ];
     for (key, value) in settings.iter().map(|(k, v)| (k.to_string(), v.clone())).chain(overrides.iter().cloned()) {
         config.insert_json5(&key, &value).map_err(zenoh_error(format!("setting {key} = {value}")))?;
@@ -84,6 +86,8 @@ pub fn serde_json_list(items: &[String]) -> String {
 /// Weights the simulation can act with.
 #[derive(Debug)]
 struct LoadedPolicy {
+    /// (learner session, version): the order in which weights supersede one another.
+    order: (u64, u64),
     version: u64,
     policy: MlpPolicy,
 }
@@ -135,9 +139,9 @@ pub async fn run(mut options: ActorOptions, stop: Arc<AtomicBool>) -> Result<(),
         let expected = spec.clone();
         move |bytes: &[u8]| match load_weights(bytes, &run_id, &expected) {
             Ok(loaded) => {
-                let newer = policy_tx.borrow().as_ref().is_none_or(|p| loaded.version > p.version);
+                let newer = policy_tx.borrow().as_ref().is_none_or(|p| loaded.order > p.order);
                 if newer {
-                    debug!(version = loaded.version, "new weights");
+                    debug!(session = loaded.order.0, version = loaded.version, "new weights");
                     policy_tx.send_replace(Some(Arc::new(loaded)));
                 }
             }
@@ -164,12 +168,9 @@ pub async fn run(mut options: ActorOptions, stop: Arc<AtomicBool>) -> Result<(),
         })
         .await
         .map_err(zenoh_error("subscribing to control"))?;
-    let _token = if options.evaluator {
-        None
-    } else {
-        let token = session.liveliness().declare_token(keys::alive_actor(&run_id, id)).await;
-        Some(token.map_err(zenoh_error("declaring liveliness"))?)
-    };
+    // The learner keeps the messages of live nodes only: every node holds a token.
+    let token_key = if options.evaluator { keys::alive_evaluator(&run_id, id) } else { keys::alive_actor(&run_id, id) };
+    let _token = session.liveliness().declare_token(token_key).await.map_err(zenoh_error("declaring liveliness"))?;
 
     // A starting actor asks for the latest weights rather than waiting for the next publish.
     let joined = Instant::now();
@@ -301,19 +302,28 @@ async fn fetch_run_info(
         if let Ok(replies) = session.get(&key).timeout(Duration::from_secs(2)).await {
             while let Ok(reply) = replies.recv_async().await {
                 let Ok(sample) = reply.result() else { continue };
-                match proto::validate::run_info(&sample.payload().to_bytes()) {
-                    Ok(info) => {
-                        let settings: ActorSettings = serde_json::from_str(&info.actor_settings_json)
-                            .map_err(|e| NodeError::Settings(e.to_string()))?;
-                        settings.validate().map_err(NodeError::Settings)?;
-                        if assign && info.assigned_actor_id.is_none() {
-                            warn!("the learner assigned no id; asking again");
-                            continue;
-                        }
-                        return Ok((info.run_id, settings, info.assigned_actor_id));
+                // A malformed reply is skipped, never fatal: the next query may reach the
+                // genuine learner.
+                let info = match proto::validate::run_info(&sample.payload().to_bytes()) {
+                    Ok(info) => info,
+                    Err(e) => {
+                        warn!("ignoring run info: {e}");
+                        continue;
                     }
-                    Err(e) => warn!("ignoring run info: {e}"),
+                };
+                let settings = match info.settings.as_ref().map(ActorSettings::try_from) {
+                    Some(Ok(settings)) => settings,
+                    Some(Err(e)) => {
+                        warn!(run = %info.run_id, "ignoring run info with unusable settings: {e}");
+                        continue;
+                    }
+                    None => continue,
+                };
+                if assign && info.assigned_actor_id.is_none() {
+                    warn!("the learner assigned no id; asking again");
+                    continue;
                 }
+                return Ok((info.run_id, settings, info.assigned_actor_id));
             }
         }
         if !announced {
@@ -327,13 +337,9 @@ async fn fetch_run_info(
 
 fn load_weights(bytes: &[u8], run_id: &str, expected: &NetworkSpec) -> Result<LoadedPolicy, NodeError> {
     let weights = proto::validate::weights(bytes, run_id).map_err(|e| NodeError::Weights(e.to_string()))?;
-    let wire = weights.network.unwrap_or_default();
-    let spec = NetworkSpec {
-        obs_dim: wire.obs_dim as usize,
-        hidden: wire.hidden.iter().map(|&h| h as usize).collect(),
-        num_actions: wire.num_actions as usize,
-        layer_norm: wire.layer_norm,
-    };
+    // Validation guarantees a network spec within the protocol's size limits.
+    let spec =
+        weights.network.as_ref().map(NetworkSpec::from).ok_or_else(|| NodeError::Weights("no network".into()))?;
     if spec.obs_dim != expected.obs_dim || spec.num_actions != expected.num_actions {
         return Err(NodeError::Weights(format!(
             "network {}→{} does not fit this environment's {}→{}",
@@ -342,7 +348,7 @@ fn load_weights(bytes: &[u8], run_id: &str, expected: &NetworkSpec) -> Result<Lo
     }
     let policy =
         MlpPolicy::from_safetensors(&weights.safetensors, &spec).map_err(|e| NodeError::Weights(e.to_string()))?;
-    Ok(LoadedPolicy { version: weights.version, policy })
+    Ok(LoadedPolicy { order: weights.order(), version: weights.version, policy })
 }
 
 /// The simulation loop: act, step, batch transitions, report episodes.

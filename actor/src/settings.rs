@@ -1,10 +1,25 @@
-//! What an actor needs to know about its run. The learner serves it as JSON in
-//! [`crawler_proto::RunInfo`], so actors on other machines need no config file.
+//! What an actor needs to know about its run. The learner serves it in
+//! [`crawler_proto::RunInfo`] as the proto message [`crawler_proto::ActorSettings`], so
+//! actors on other machines need no config file; the conversions are below.
 
+use crawler_proto as proto;
 use serde::{Deserialize, Serialize};
 
-use crate::env::EnvConfig;
+use crate::env::{Direction, EnvConfig};
 use crate::policy::{EpsilonDecay, apex_epsilon};
+
+/// Why run settings received from a learner are unusable.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+pub enum SettingsError {
+    #[error("the run info carries no {0} settings")]
+    Missing(&'static str),
+    #[error("field `{field}` = {value} does not fit: {allowed}")]
+    Field { field: &'static str, value: String, allowed: &'static str },
+    #[error(transparent)]
+    Env(#[from] crate::env::EnvConfigError),
+    #[error("{0}")]
+    Invalid(String),
+}
 
 /// How actors explore.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -107,8 +122,167 @@ impl ActorSettings {
         Ok(())
     }
 
+    /// Checks the settings, as a typed error.
+    pub fn check(&self) -> Result<(), SettingsError> {
+        self.env.validate()?;
+        self.validate().map_err(SettingsError::Invalid)
+    }
+
     /// Seeds of actor `actor`'s crawlers.
     pub fn seeds(&self, actor: u32) -> Vec<u64> {
         (0..self.envs_per_actor as u64).map(|k| self.seed + 1000 * u64::from(actor) + k).collect()
+    }
+}
+
+fn pair(values: &[f32], field: &'static str) -> Result<[f32; 2], SettingsError> {
+    <[f32; 2]>::try_from(values).map_err(|_| SettingsError::Field {
+        field,
+        value: format!("{values:?}"),
+        allowed: "exactly two values [low, high]",
+    })
+}
+
+impl From<&EnvConfig> for proto::EnvSettings {
+    fn from(env: &EnvConfig) -> Self {
+        let direction = match env.direction {
+            Direction::Forward => proto::Direction::Forward,
+            Direction::Backward => proto::Direction::Backward,
+        };
+        proto::EnvSettings {
+            action_levels: env.action_levels,
+            action_repeat: env.action_repeat,
+            direction: direction as i32,
+            max_torque: env.max_torque,
+            dt: env.dt,
+            min_episode_steps: env.min_episode_steps,
+            max_episode_steps: env.max_episode_steps,
+            min_progress_per_step: env.min_progress_per_step,
+            sliding_base: env.sliding_base,
+            solver_iterations: env.solver_iterations,
+            start_joint1_deg: env.start_joint1_deg.to_vec(),
+            start_joint2_deg: env.start_joint2_deg.to_vec(),
+        }
+    }
+}
+
+impl TryFrom<&proto::EnvSettings> for EnvConfig {
+    type Error = SettingsError;
+
+    fn try_from(env: &proto::EnvSettings) -> Result<Self, SettingsError> {
+        let direction = match proto::Direction::try_from(env.direction) {
+            Ok(proto::Direction::Forward) => Direction::Forward,
+            Ok(proto::Direction::Backward) => Direction::Backward,
+            Err(_) => {
+                return Err(SettingsError::Field {
+                    field: "env.direction",
+                    value: env.direction.to_string(),
+                    allowed: "0 (forward) or 1 (backward)",
+                });
+            }
+        };
+        let config = EnvConfig {
+            action_levels: env.action_levels,
+            action_repeat: env.action_repeat,
+            direction,
+            max_torque: env.max_torque,
+            dt: env.dt,
+            min_episode_steps: env.min_episode_steps,
+            max_episode_steps: env.max_episode_steps,
+            min_progress_per_step: env.min_progress_per_step,
+            sliding_base: env.sliding_base,
+            solver_iterations: env.solver_iterations,
+            start_joint1_deg: pair(&env.start_joint1_deg, "env.start_joint1_deg")?,
+            start_joint2_deg: pair(&env.start_joint2_deg, "env.start_joint2_deg")?,
+        };
+        config.validate()?;
+        Ok(config)
+    }
+}
+
+impl From<&ActorSettings> for proto::ActorSettings {
+    fn from(settings: &ActorSettings) -> Self {
+        let exploration = match settings.exploration {
+            Exploration::Ladder { base, alpha, actors } => proto::Exploration::Ladder(proto::EpsilonLadder {
+                base,
+                alpha,
+                actors: u32::try_from(actors).unwrap_or(u32::MAX),
+            }),
+            Exploration::Decay { start, factor, every, min } => {
+                proto::Exploration::Decay(proto::EpsilonDecay { start, factor, every, min })
+            }
+        };
+        proto::ActorSettings {
+            env: Some((&settings.env).into()),
+            // Validated to at most 1 024 and 4 096.
+            envs_per_actor: u32::try_from(settings.envs_per_actor).unwrap_or(u32::MAX),
+            batch_transitions: u32::try_from(settings.batch_transitions).unwrap_or(u32::MAX),
+            exploration: Some(exploration),
+            seed: settings.seed,
+            status_interval_s: settings.status_interval_s,
+        }
+    }
+}
+
+impl TryFrom<&proto::ActorSettings> for ActorSettings {
+    type Error = SettingsError;
+
+    /// Converts and validates: whatever a learner (or an impostor) sends, the result is
+    /// usable or an error that names the field.
+    fn try_from(wire: &proto::ActorSettings) -> Result<Self, SettingsError> {
+        let env = wire.env.as_ref().ok_or(SettingsError::Missing("environment"))?;
+        let exploration = match wire.exploration.as_ref().ok_or(SettingsError::Missing("exploration"))? {
+            proto::Exploration::Ladder(l) => {
+                Exploration::Ladder { base: l.base, alpha: l.alpha, actors: l.actors as usize }
+            }
+            proto::Exploration::Decay(d) => {
+                Exploration::Decay { start: d.start, factor: d.factor, every: d.every, min: d.min }
+            }
+        };
+        let settings = ActorSettings {
+            env: EnvConfig::try_from(env)?,
+            envs_per_actor: wire.envs_per_actor as usize,
+            batch_transitions: wire.batch_transitions as usize,
+            exploration,
+            seed: wire.seed,
+            status_interval_s: wire.status_interval_s,
+        };
+        settings.check()?;
+        Ok(settings)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn settings_survive_the_wire() {
+        let mut settings = ActorSettings::default();
+        settings.env.direction = Direction::Backward;
+        settings.env.action_repeat = 10;
+        settings.exploration = Exploration::Decay { start: 1.0, factor: 0.99, every: 100, min: 0.05 };
+        let wire = proto::ActorSettings::from(&settings);
+        assert_eq!(ActorSettings::try_from(&wire), Ok(settings.clone()));
+        let ladder = ActorSettings::default();
+        assert_eq!(ActorSettings::try_from(&proto::ActorSettings::from(&ladder)), Ok(ladder));
+    }
+
+    #[test]
+    fn malformed_settings_are_named() {
+        let good = proto::ActorSettings::from(&ActorSettings::default());
+        let mut empty = good.clone();
+        empty.env = None;
+        assert_eq!(ActorSettings::try_from(&empty), Err(SettingsError::Missing("environment")));
+        let mut bad_pair = good.clone();
+        if let Some(env) = bad_pair.env.as_mut() {
+            env.start_joint1_deg = vec![1.0];
+        }
+        assert!(matches!(ActorSettings::try_from(&bad_pair), Err(SettingsError::Field { .. })));
+        let mut nan = good.clone();
+        nan.status_interval_s = f64::NAN;
+        assert!(ActorSettings::try_from(&nan).is_err());
+        let mut no_envs = good;
+        no_envs.envs_per_actor = 0;
+        assert!(ActorSettings::try_from(&no_envs).is_err());
     }
 }

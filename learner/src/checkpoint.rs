@@ -59,6 +59,10 @@ pub enum CheckpointError {
     Mismatch { path: PathBuf, what: &'static str, found: String, expected: String },
     #[error("no checkpoint found in {0}; train first, or point at a `step-*` directory")]
     NotFound(PathBuf),
+    #[error("refusing to save a checkpoint in {0}: the {1} network holds NaN or infinite weights")]
+    NonFinite(PathBuf, &'static str),
+    #[error("checkpoint {path} did not load back after writing, so it was removed: {source}")]
+    Unreadable { path: PathBuf, source: Box<CheckpointError> },
 }
 
 fn io(action: &'static str, path: &Path) -> impl FnOnce(std::io::Error) -> CheckpointError + use<> {
@@ -88,6 +92,9 @@ pub struct Progress {
     pub physics_steps: u64,
     /// Version of the last weights published.
     pub weights_version: u64,
+    /// The learner process of the run that wrote this (see `proto::Weights::learner_session`).
+    #[serde(default)]
+    pub learner_session: u64,
     /// ε of the exploration schedule at this point.
     pub epsilon: f64,
     /// Seconds of training behind this checkpoint, over all sessions of the run.
@@ -149,6 +156,11 @@ pub fn save(
     replay: Option<&Replay>,
     keep: usize,
 ) -> Result<PathBuf, CheckpointError> {
+    for (network, which) in [(&dqn.online, "online"), (&dqn.target, "target")] {
+        if !network.all_finite() {
+            return Err(CheckpointError::NonFinite(dir.to_path_buf(), which));
+        }
+    }
     fs::create_dir_all(dir).map_err(io("create", dir))?;
     let name = format!("{PREFIX}{:012}", progress.updates);
     let final_path = dir.join(&name);
@@ -200,8 +212,29 @@ pub fn save(
     if let Ok(parent) = fs::File::open(dir) {
         let _ = parent.sync_all();
     }
+    // Only a checkpoint that loads back counts; older ones are pruned only after that, so
+    // the newest good checkpoint is never the one removed.
+    if let Err(error) = verify_saved(&final_path) {
+        let _ = fs::remove_dir_all(&final_path);
+        return Err(CheckpointError::Unreadable { path: final_path, source: Box::new(error) });
+    }
     prune(dir, keep)?;
     Ok(final_path)
+}
+
+/// Reads a checkpoint back as `eval` and `--resume` will: every file against its checksum,
+/// the weights finite.
+fn verify_saved(path: &Path) -> Result<(), CheckpointError> {
+    let checkpoint = load(path)?;
+    if !checkpoint.online.iter().chain(&checkpoint.target).all(|v| v.is_finite()) {
+        return Err(corrupt(path, "non-finite weights"));
+    }
+    if let Some(digest) = checkpoint.meta.files.get(REPLAY) {
+        let replay = path.join(REPLAY);
+        let bytes = fs::read(&replay).map_err(io("read", &replay))?;
+        verify(&replay, &bytes, digest)?;
+    }
+    Ok(())
 }
 
 /// Counts and checksums bytes on their way to a writer.

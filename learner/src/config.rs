@@ -21,6 +21,8 @@ pub enum ConfigError {
     Override(String),
     #[error("{key} = {value} is invalid: {allowed}")]
     Invalid { key: String, value: String, allowed: String },
+    #[error("{what} would need {needed_mib} MiB, more than this machine's {total_mib} MiB of memory: lower {key}")]
+    TooLarge { what: &'static str, key: &'static str, needed_mib: u64, total_mib: u64 },
 }
 
 /// Hidden layers of the Q-network; its input and output sizes follow from the environment.
@@ -98,6 +100,12 @@ pub struct LearnerSection {
     pub threads: usize,
     /// zenoh endpoints the embedded router listens on.
     pub listen: Vec<String>,
+    /// Allow a plain-TCP listener on an address other than loopback (no authentication: any
+    /// host that reaches the port acts as an actor). Mutual TLS needs no such opt-in.
+    pub allow_plain_remote: bool,
+    /// Live actors and evaluators the learner keeps track of; liveliness tokens beyond this
+    /// are ignored, and so are their messages. Bounds every per-actor table.
+    pub max_actors: usize,
     /// Publish weights every this many updates.
     pub weights_every: u64,
     /// Write a checkpoint every this many updates (0: only at the end).
@@ -121,7 +129,9 @@ impl Default for LearnerSection {
     fn default() -> Self {
         Self {
             threads: 1,
-            listen: vec!["tcp/0.0.0.0:7447".into()],
+            listen: vec!["tcp/127.0.0.1:7447".into()],
+            allow_plain_remote: false,
+            max_actors: 64,
             weights_every: 50,
             checkpoint_every: 5_000,
             keep_checkpoints: 3,
@@ -189,10 +199,29 @@ impl TrainConfig {
                 .unwrap_or_else(|| toml::Value::String(raw.to_string()));
             set_path(&mut value, key.trim(), parsed).map_err(|_| ConfigError::Override(assignment.clone()))?;
         }
+        check_finite(&value, "")?;
         let config: TrainConfig =
             toml::Value::Table(value).try_into().map_err(|e: toml::de::Error| parse_error(e.to_string()))?;
         config.validate()?;
+        config.check_memory(crate::memory::total_bytes())?;
         Ok(config)
+    }
+
+    /// Refuses sizes this machine cannot hold, before anything starts: the replay buffer
+    /// (`total` is the machine's memory in bytes; None: unknown, not checked).
+    pub fn check_memory(&self, total: Option<u64>) -> Result<(), ConfigError> {
+        let Some(total) = total else { return Ok(()) };
+        let mib = |bytes: u64| bytes >> 20;
+        let needed = crate::replay::Replay::bytes_needed(&self.replay, OBS_DIM);
+        if needed.is_none_or(|n| n > total) {
+            return Err(ConfigError::TooLarge {
+                what: "the replay buffer",
+                key: "replay.capacity",
+                needed_mib: needed.map_or(u64::MAX, mib),
+                total_mib: mib(total),
+            });
+        }
+        Ok(())
     }
 
     /// Checks every value against its allowed range; the error names the key.
@@ -207,6 +236,9 @@ impl TrainConfig {
         let d = &self.dqn;
         if !(d.gamma > 0.0 && d.gamma <= 1.0) {
             return Err(invalid("dqn.gamma", d.gamma.to_string(), "a number in (0, 1]"));
+        }
+        if !(d.adam_eps.is_finite() && d.adam_eps > 0.0 && d.adam_eps < 1.0) {
+            return Err(invalid("dqn.adam_eps", d.adam_eps.to_string(), "a number in (0, 1)"));
         }
         if !(d.lr.is_finite() && d.lr > 0.0 && d.lr < 1.0) {
             return Err(invalid("dqn.lr", d.lr.to_string(), "a number in (0, 1)"));
@@ -257,6 +289,9 @@ impl TrainConfig {
                 "a number ≥ 0 (0: no limit)",
             ));
         }
+        if !(r.error_buffer.is_finite() && r.error_buffer >= 0.0) {
+            return Err(invalid("rate.error_buffer", r.error_buffer.to_string(), "a finite number ≥ 0"));
+        }
         if r.warmup < d.batch_size || r.warmup > self.replay.capacity {
             return Err(invalid("rate.warmup", r.warmup.to_string(), "between dqn.batch_size and replay.capacity"));
         }
@@ -268,8 +303,14 @@ impl TrainConfig {
             return Err(invalid(
                 "learner.listen",
                 "[]".into(),
-                "at least one zenoh endpoint, e.g. \"tcp/0.0.0.0:7447\"",
+                "at least one zenoh endpoint, e.g. \"tcp/127.0.0.1:7447\"",
             ));
+        }
+        if !(l.max_seconds.is_finite() && l.max_seconds >= 0.0) {
+            return Err(invalid("learner.max_seconds", l.max_seconds.to_string(), "a finite number ≥ 0 (0: no limit)"));
+        }
+        if !(1..=4096).contains(&l.max_actors) {
+            return Err(invalid("learner.max_actors", l.max_actors.to_string(), "an integer in 1..=4096"));
         }
         if l.weights_every == 0 {
             return Err(invalid("learner.weights_every", "0".into(), "at least 1"));
@@ -323,6 +364,26 @@ impl TrainConfig {
     }
 }
 
+/// Refuses NaN and ±∞ anywhere in a config, naming the key: serde would take them as
+/// numbers, and a NaN compares false with every bound a later check might use.
+fn check_finite(value: &toml::Table, prefix: &str) -> Result<(), ConfigError> {
+    fn walk(value: &toml::Value, key: &str) -> Result<(), ConfigError> {
+        match value {
+            toml::Value::Float(f) if !f.is_finite() => Err(ConfigError::Invalid {
+                key: key.to_string(),
+                value: f.to_string(),
+                allowed: "a finite number (not NaN or ±inf)".into(),
+            }),
+            toml::Value::Table(table) => check_finite(table, key),
+            toml::Value::Array(items) => {
+                items.iter().enumerate().try_for_each(|(i, item)| walk(item, &format!("{key}[{i}]")))
+            }
+            _ => Ok(()),
+        }
+    }
+    value.iter().try_for_each(|(k, v)| walk(v, &if prefix.is_empty() { k.clone() } else { format!("{prefix}.{k}") }))
+}
+
 fn without_nulls(value: &serde_json::Value) -> serde_json::Value {
     match value {
         serde_json::Value::Object(map) => {
@@ -373,5 +434,43 @@ mod tests {
         assert_eq!(TrainConfig::from_json(&json, "test", &[]).unwrap(), config);
         let missing = TrainConfig::load(Path::new("/no/such/config.toml"), &[]).unwrap_err().to_string();
         assert!(missing.contains("/no/such/config.toml"), "{missing}");
+    }
+
+    #[test]
+    fn nan_infinity_and_overflow_are_refused_with_the_key_named() {
+        for (assignment, key) in [
+            ("dqn.adam_eps=nan", "dqn.adam_eps"),
+            ("rate.error_buffer=nan", "rate.error_buffer"),
+            ("learner.max_seconds=nan", "learner.max_seconds"),
+            ("learner.max_seconds=inf", "learner.max_seconds"),
+            ("env.max_torque=-inf", "env.max_torque"),
+            ("env.start_joint1_deg=[0.0, nan]", "env.start_joint1_deg[1]"),
+            ("exploration.base=nan", "exploration.base"),
+            ("dqn.adam_eps=0.0", "dqn.adam_eps"),
+        ] {
+            let err = TrainConfig::from_toml("", "test", &[assignment.into()]).unwrap_err().to_string();
+            assert!(err.contains(key), "{assignment}: {err}");
+        }
+        // Beyond i64, TOML itself refuses; beyond usize's useful range, the key is named.
+        let err = TrainConfig::from_toml("", "test", &["replay.capacity=99999999999999999999".into()]).unwrap_err();
+        assert!(err.to_string().contains("replay.capacity"), "{err}");
+    }
+
+    #[test]
+    fn sizes_the_machine_cannot_hold_are_refused_before_anything_starts() {
+        let config = TrainConfig::from_toml("[replay]\ncapacity = 4000000000\nn_step = 3\n", "test", &[]);
+        // On a machine with less than ~700 GB the load itself refuses; check the arithmetic
+        // against a stated memory too.
+        let config = match config {
+            Err(e) => {
+                assert!(matches!(e, ConfigError::TooLarge { key: "replay.capacity", .. }), "{e}");
+                return;
+            }
+            Ok(config) => config,
+        };
+        let err = config.check_memory(Some(24 << 30)).unwrap_err().to_string();
+        assert!(err.contains("replay.capacity") && err.contains("MiB"), "{err}");
+        let err = TrainConfig::from_toml("", "test", &["network.hidden=[65536, 65536]".into()]).unwrap_err();
+        assert!(err.to_string().contains("network.hidden"), "{err}");
     }
 }

@@ -81,9 +81,16 @@ pub struct Batch {
     pub weights: Option<Tensor>,
 }
 
+/// Gradient norms at or above this are refused like non-finite ones: squared into Adam's
+/// second moment they would overflow f32 (its largest value is 3.4e38).
+pub const MAX_APPLIED_GRAD_NORM: f64 = 1e18;
+
 /// What one update measured.
 #[derive(Debug, Clone, PartialEq)]
 pub struct UpdateStats {
+    /// False when the loss or the gradient was not finite (or too large to apply): the
+    /// weights, the optimiser and the target network were left as they were.
+    pub applied: bool,
     pub loss: f64,
     pub mean_q: f64,
     /// |TD error| per sample, for priority updates.
@@ -142,6 +149,17 @@ impl Dqn {
         };
         let grad = self.online.flat_gradient(&loss);
         let grad_norm = grad.norm().double_value(&[]);
+        let loss_value = loss.double_value(&[]);
+        if !(loss_value.is_finite() && grad_norm.is_finite() && grad_norm < MAX_APPLIED_GRAD_NORM) {
+            // One bad batch must not poison the weights: skip the step, report it.
+            return UpdateStats {
+                applied: false,
+                loss: loss_value,
+                mean_q: f64::NAN,
+                td_errors: Vec::new(),
+                grad_norm,
+            };
+        }
         let grad = match self.config.max_grad_norm {
             Some(max) if grad_norm > max => grad * (max / (grad_norm + 1e-6)),
             _ => grad,
@@ -158,7 +176,8 @@ impl Dqn {
         }
         let td = (&q - &targets).detach().abs();
         UpdateStats {
-            loss: loss.double_value(&[]),
+            applied: true,
+            loss: loss_value,
             mean_q: q.detach().mean(Kind::Float).double_value(&[]),
             td_errors: Vec::<f32>::try_from(&td).unwrap_or_default(),
             grad_norm,

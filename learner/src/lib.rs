@@ -17,6 +17,7 @@ pub mod checkpoint;
 pub mod config;
 pub mod dqn;
 pub mod evaluate;
+pub mod memory;
 pub mod metrics;
 pub mod network;
 

@@ -94,6 +94,11 @@ impl QNetwork {
         &mut self.flat
     }
 
+    /// Whether every parameter is finite: weights are published and saved only then.
+    pub fn all_finite(&self) -> bool {
+        tch::no_grad(|| self.flat.isfinite().all().int64_value(&[]) != 0)
+    }
+
     /// The per-parameter tensors autograd differentiates, in `nn.Sequential` order.
     pub fn params(&self) -> &[Tensor] {
         &self.params

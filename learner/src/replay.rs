@@ -153,6 +153,16 @@ pub struct Replay {
 }
 
 impl Replay {
+    /// Bytes the buffer's arrays take at `config.capacity` (None: beyond u64 or beyond the
+    /// u32 slot indices): one observation, action, reward, flags, link and stamp per slot,
+    /// plus the sum tree for prioritised replay.
+    pub fn bytes_needed(config: &ReplayConfig, obs_dim: usize) -> Option<u64> {
+        let capacity = u64::try_from(config.capacity).ok().filter(|&c| c <= u64::from(u32::MAX))?;
+        let per_slot = 4 * obs_dim as u64 + 1 + 4 + 1 + 4 + 8;
+        let tree = if config.prioritized.is_some() { 2 * 8 * capacity } else { 0 };
+        capacity.checked_mul(per_slot)?.checked_add(tree)
+    }
+
     pub fn new(config: ReplayConfig, obs_dim: usize) -> Result<Self, ReplayError> {
         let capacity = config.capacity;
         if capacity < 2 || capacity > u32::MAX as usize {

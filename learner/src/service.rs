@@ -26,6 +26,8 @@ use zenoh::Wait;
 use zenoh::qos::CongestionControl;
 use zenoh::sample::SampleKind;
 
+use crawler_actor::env::observation;
+
 use crate::checkpoint::{self, Checkpoint, CheckpointError, Progress};
 use crate::config::TrainConfig;
 use crate::dqn::{Batch, Dqn};
@@ -59,7 +61,10 @@ pub struct ServiceOptions {
     pub resume: Option<Checkpoint>,
     /// A checkpoint of another run whose networks start this one (transfer).
     pub init_from: Option<Checkpoint>,
-    /// Extra zenoh settings as (key, JSON5) pairs, applied last (TLS, access control).
+    /// How remote sessions are identified: by certificate under mutual TLS (which the
+    /// overrides then configure), or not at all.
+    pub identity: crate::access_control::Identity,
+    /// Extra zenoh settings as (key, JSON5) pairs, applied last (TLS).
     pub zenoh_overrides: Vec<(String, String)>,
 }
 
@@ -80,20 +85,106 @@ pub struct ActorView {
     pub gaps: u64,
 }
 
+/// Which kind of node a liveliness token announces.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum NodeKind {
+    Actor,
+    Evaluator,
+}
+
+/// The nodes holding a liveliness token, at most `max` of them: only their messages are kept,
+/// so every per-actor table is bounded by `max`.
+#[derive(Debug, Default)]
+struct LiveNodes {
+    actors: BTreeSet<u32>,
+    evaluators: BTreeSet<u32>,
+    max: usize,
+}
+
+/// What became of a liveliness token.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum Admission {
+    Admitted,
+    AlreadyLive,
+    /// `max` nodes are live already: ignored.
+    Full,
+}
+
+impl LiveNodes {
+    fn set(&mut self, kind: NodeKind) -> &mut BTreeSet<u32> {
+        match kind {
+            NodeKind::Actor => &mut self.actors,
+            NodeKind::Evaluator => &mut self.evaluators,
+        }
+    }
+
+    fn holds(&self, kind: NodeKind, id: u32) -> bool {
+        match kind {
+            NodeKind::Actor => self.actors.contains(&id),
+            NodeKind::Evaluator => self.evaluators.contains(&id),
+        }
+    }
+
+    fn admit(&mut self, kind: NodeKind, id: u32) -> Admission {
+        if self.holds(kind, id) {
+            Admission::AlreadyLive
+        } else if self.actors.len() + self.evaluators.len() >= self.max {
+            Admission::Full
+        } else {
+            self.set(kind).insert(id);
+            Admission::Admitted
+        }
+    }
+
+    /// Whether the node was live.
+    fn leave(&mut self, kind: NodeKind, id: u32) -> bool {
+        self.set(kind).remove(&id)
+    }
+}
+
 /// State shared between zenoh callbacks, the training thread and status reports.
 #[derive(Debug, Default)]
 struct Shared {
     actors: Mutex<BTreeMap<u32, ActorView>>,
-    connected: Mutex<BTreeSet<u32>>,
+    live: Mutex<LiveNodes>,
+    /// Last sequence number per live actor (forgotten when it leaves).
+    sequences: Mutex<SequenceTracker>,
     rejected: Mutex<BTreeMap<&'static str, u64>>,
+    /// Liveliness tokens beyond `learner.max_actors`, ignored.
+    ignored_tokens: AtomicU64,
+    /// Actor ids that have metric tags of their own.
+    tagged_actors: Mutex<BTreeSet<u32>>,
     latest_weights: Mutex<Vec<u8>>,
     dropped_batches: AtomicU64,
+    skipped_updates: AtomicU64,
     evaluation: Mutex<Option<proto::EpisodeStats>>,
     /// Ids handed to `--id auto` actors, and when: reserved until the actor shows up.
     assigned: Mutex<BTreeMap<u32, Instant>>,
     /// Episodes not yet written to the metrics; bounded by [`MAX_PENDING_EPISODES`].
     pending_episodes: Mutex<Vec<proto::EpisodeStats>>,
 }
+
+impl Shared {
+    fn new(max_actors: usize) -> Self {
+        Self { live: Mutex::new(LiveNodes { max: max_actors, ..LiveNodes::default() }), ..Self::default() }
+    }
+
+    fn connected(&self) -> BTreeSet<u32> {
+        lock(&self.live).actors.clone()
+    }
+
+    /// Whether actor `id` gets metric tags of its own (`actor/<id>/…`): the first
+    /// `learner.max_actors` ids do, so that churn of ids cannot grow the tag set without bound.
+    fn may_tag(&self, id: u32) -> bool {
+        let max = lock(&self.live).max;
+        let mut tagged = lock(&self.tagged_actors);
+        tagged.contains(&id) || (tagged.len() < max && tagged.insert(id))
+    }
+}
+
+/// Ids handed to `--id auto` actors that have not shown up yet, at most this many: the
+/// oldest reservation gives way, so queries cannot push ids up without bound.
+const MAX_PENDING_ASSIGNMENTS: usize = 16;
 
 /// Episodes held for the metrics writer, which drains them every second. Beyond this (the
 /// training thread stalled) new episodes are left out of the metrics, not queued.
@@ -126,6 +217,10 @@ pub struct Status {
     pub ingest_per_second: BTreeMap<u32, f64>,
     pub rejected: BTreeMap<&'static str, u64>,
     pub dropped_batches: u64,
+    /// Updates skipped because their loss or gradient was not finite.
+    pub skipped_updates: u64,
+    /// Liveliness tokens beyond `learner.max_actors`, ignored.
+    pub ignored_tokens: u64,
     pub last_checkpoint: Option<String>,
     pub last_evaluation_speed: Option<f32>,
 }
@@ -139,7 +234,7 @@ pub struct Outcome {
 
 /// Opens the router, serves the run, trains until `stop` or a configured limit.
 pub async fn run(options: ServiceOptions, stop: Arc<AtomicBool>) -> Result<Outcome, ServiceError> {
-    let ServiceOptions { config, run_id, run_dir, resume, init_from, zenoh_overrides } = options;
+    let ServiceOptions { config, run_id, run_dir, resume, init_from, identity, zenoh_overrides } = options;
     keys::check_run_id(&run_id).map_err(|e| ServiceError::Setup(e.to_string()))?;
     std::fs::create_dir_all(&run_dir)
         .map_err(|e| ServiceError::Setup(format!("cannot create {}: {e}", run_dir.display())))?;
@@ -148,23 +243,36 @@ pub async fn run(options: ServiceOptions, stop: Arc<AtomicBool>) -> Result<Outco
 
     let mut zenoh_config = zenoh::Config::default();
     let listen = crawler_actor::node::serde_json_list(&config.learner.listen);
+    let max_actors = config.learner.max_actors;
     let base = [
         ("mode".to_string(), "\"router\"".to_string()),
         ("listen/endpoints".to_string(), listen),
         ("scouting/multicast/enabled".to_string(), "false".to_string()),
+        // zenoh buffers up to 1 GiB of one incoming message by default; nothing legal is
+        // larger than this.
+        ("transport/link/rx/max_message_size".to_string(), proto::TRANSPORT_MAX_MESSAGE_BYTES.to_string()),
+        // Sessions the router admits (actors, evaluators, observers, with room for
+        // reconnections), so that per-session buffers stay bounded.
+        ("transport/unicast/max_sessions".to_string(), (2 * max_actors + 16).to_string()),
+        // A connection that never completes its handshake holds an accept slot this long
+        // (zenoh's default is 10 s): idle connections delay real actors less.
+        ("transport/unicast/accept_timeout".to_string(), "2000".to_string()),
+        // The policy is always on: under TLS roles come by certificate, without it every
+        // remote session is an actor (access_control.rs).
+        ("access_control".to_string(), crate::access_control::policy(&run_id, identity).to_string()),
     ];
     for (key, value) in base.into_iter().chain(zenoh_overrides) {
         zenoh_config.insert_json5(&key, &value).map_err(zenoh_error(format!("setting {key} = {value}")))?;
     }
     let session = zenoh::open(zenoh_config).await.map_err(zenoh_error("opening the router"))?;
+
     info!(run = %run_id, listen = ?config.learner.listen, "learner router up");
 
-    let shared = Arc::new(Shared::default());
+    let shared = Arc::new(Shared::new(max_actors));
     let run_info = proto::RunInfo {
         protocol_version: PROTOCOL_VERSION,
         run_id: run_id.clone(),
-        actor_settings_json: serde_json::to_string(&config.actor_settings())
-            .map_err(|e| ServiceError::Setup(e.to_string()))?,
+        settings: Some((&config.actor_settings()).into()),
         assigned_actor_id: None,
     };
     let info_key = keys::info(&run_id);
@@ -211,7 +319,10 @@ pub async fn run(options: ServiceOptions, stop: Arc<AtomicBool>) -> Result<Outco
         run_id: run_id.clone(),
         obs_dim: crawler_actor::env::OBS_DIM as u32,
         num_actions: config.env.num_actions() as u32,
-        max_batch: 4096,
+        max_batch: proto::MAX_BATCH_TRANSITIONS,
+        envs_per_actor: config.actor.envs_per_actor as u32,
+        observation_range: observation::observation_range(config.env.max_torque),
+        max_abs_reward: observation::max_abs_reward(config.env.action_repeat),
     };
     let _transitions = session
         .declare_subscriber(keys::all_transitions(&run_id))
@@ -228,27 +339,20 @@ pub async fn run(options: ServiceOptions, stop: Arc<AtomicBool>) -> Result<Outco
         .callback(validated(&shared, &run_id, proto::validate::actor_status, record_status))
         .await
         .map_err(zenoh_error("subscribing to status"))?;
-    let alive_shared = Arc::clone(&shared);
-    let _alive = session
+    let _alive_actors = session
         .liveliness()
         .declare_subscriber(keys::all_alive_actors(&run_id))
         .history(true)
-        .callback(move |sample| {
-            let Some(id) = keys::trailing_id(sample.key_expr().as_str()) else { return };
-            let mut connected = lock(&alive_shared.connected);
-            match sample.kind() {
-                SampleKind::Put => {
-                    info!(actor = id, "actor connected");
-                    connected.insert(id);
-                }
-                SampleKind::Delete => {
-                    info!(actor = id, "actor left");
-                    connected.remove(&id);
-                }
-            }
-        })
+        .callback(liveliness_callback(Arc::clone(&shared), NodeKind::Actor))
         .await
         .map_err(zenoh_error("watching actor liveliness"))?;
+    let _alive_evaluators = session
+        .liveliness()
+        .declare_subscriber(keys::all_alive_evaluators(&run_id))
+        .history(true)
+        .callback(liveliness_callback(Arc::clone(&shared), NodeKind::Evaluator))
+        .await
+        .map_err(zenoh_error("watching evaluator liveliness"))?;
 
     // Training runs on its own thread; weights come back through a channel to be published.
     let (weights_tx, mut weights_rx) = tokio::sync::mpsc::channel::<Vec<u8>>(2);
@@ -291,9 +395,13 @@ const ASSIGNMENT_HOLD: Duration = Duration::from_secs(30);
 
 /// The smallest id that no connected actor holds and that was not handed out recently.
 fn assign_actor_id(shared: &Shared) -> u32 {
-    let connected = lock(&shared.connected).clone();
+    let connected = shared.connected();
     let mut assigned = lock(&shared.assigned);
     assigned.retain(|id, at| at.elapsed() < ASSIGNMENT_HOLD && !connected.contains(id));
+    while assigned.len() >= MAX_PENDING_ASSIGNMENTS {
+        let Some(oldest) = assigned.iter().min_by_key(|(_, at)| **at).map(|(id, _)| *id) else { break };
+        assigned.remove(&oldest);
+    }
     let id = (0..).find(|id| !connected.contains(id) && !assigned.contains_key(id)).unwrap_or(u32::MAX);
     assigned.insert(id, Instant::now());
     info!(actor = id, "assigned an actor id");
@@ -313,9 +421,40 @@ fn count_rejection(shared: &Shared, error: &proto::ProtoError) {
     }
 }
 
-/// A subscriber callback that validates each message with `decode` and hands valid ones to
-/// `record`; rejections are counted and logged with rate limiting.
-fn validated<M: 'static>(
+/// A message an actor or evaluator puts under its own id.
+trait FromNode {
+    fn node(&self) -> (NodeKind, u32);
+}
+
+impl FromNode for proto::EpisodeStats {
+    fn node(&self) -> (NodeKind, u32) {
+        (if self.evaluation { NodeKind::Evaluator } else { NodeKind::Actor }, self.actor_id)
+    }
+}
+
+impl FromNode for proto::ActorStatus {
+    fn node(&self) -> (NodeKind, u32) {
+        (if self.evaluator { NodeKind::Evaluator } else { NodeKind::Actor }, self.actor_id)
+    }
+}
+
+impl FromNode for proto::TransitionBatch {
+    fn node(&self) -> (NodeKind, u32) {
+        (NodeKind::Actor, self.actor_id)
+    }
+}
+
+/// The checks every message from a node passes after decoding: it is put under its own id,
+/// and that id holds a liveliness token.
+fn check_sender(shared: &Shared, key: &str, message: &impl FromNode) -> Result<(), proto::ProtoError> {
+    let (kind, id) = message.node();
+    proto::validate::check_sender(key, id)?;
+    if lock(&shared.live).holds(kind, id) { Ok(()) } else { Err(proto::ProtoError::NotLive { actor: id }) }
+}
+
+/// A subscriber callback that validates each message with `decode` and [`check_sender`] and
+/// hands valid ones to `record`; rejections are counted and logged with rate limiting.
+fn validated<M: FromNode + 'static>(
     shared: &Arc<Shared>,
     run_id: &str,
     decode: fn(&[u8], &str) -> Result<M, proto::ProtoError>,
@@ -323,9 +462,58 @@ fn validated<M: 'static>(
 ) -> impl Fn(zenoh::sample::Sample) + Send + Sync + 'static {
     let shared = Arc::clone(shared);
     let run_id = run_id.to_string();
-    move |sample| match decode(&sample.payload().to_bytes(), &run_id) {
-        Ok(message) => record(&shared, message),
-        Err(e) => count_rejection(&shared, &e),
+    move |sample| {
+        let checked = decode(&sample.payload().to_bytes(), &run_id)
+            .and_then(|message| check_sender(&shared, sample.key_expr().as_str(), &message).map(|()| message));
+        match checked {
+            Ok(message) => record(&shared, message),
+            Err(e) => count_rejection(&shared, &e),
+        }
+    }
+}
+
+/// Tracks liveliness tokens of one kind: up to `learner.max_actors` live nodes. A node that
+/// leaves takes its sequence state with it; its view stays until a new node needs the room.
+fn liveliness_callback(shared: Arc<Shared>, kind: NodeKind) -> impl Fn(zenoh::sample::Sample) + Send + Sync + 'static {
+    move |sample| {
+        let Some(id) = keys::trailing_id(sample.key_expr().as_str()) else { return };
+        let mut live = lock(&shared.live);
+        match sample.kind() {
+            SampleKind::Put => match live.admit(kind, id) {
+                Admission::AlreadyLive => {}
+                Admission::Full => {
+                    let ignored = shared.ignored_tokens.fetch_add(1, Ordering::Relaxed) + 1;
+                    if ignored <= 3 || ignored.is_multiple_of(1000) {
+                        warn!(
+                            id,
+                            max = live.max,
+                            ignored,
+                            "more live nodes than learner.max_actors: ignoring this one"
+                        );
+                    }
+                }
+                Admission::Admitted => {
+                    info!(id, ?kind, "node connected");
+                    // Views of actors that left stay for status.json until room is needed.
+                    let live_actors = live.actors.clone();
+                    let max = live.max;
+                    drop(live);
+                    let mut views = lock(&shared.actors);
+                    if views.len() >= max {
+                        views.retain(|id, _| live_actors.contains(id));
+                    }
+                }
+            },
+            SampleKind::Delete => {
+                if live.leave(kind, id) {
+                    info!(id, ?kind, "node left");
+                    drop(live);
+                    if kind == NodeKind::Actor {
+                        lock(&shared.sequences).forget(id);
+                    }
+                }
+            }
+        }
     }
 }
 
@@ -369,13 +557,14 @@ fn ingest_callback(
     queue: SyncSender<proto::TransitionBatch>,
     shared: Arc<Shared>,
 ) -> impl Fn(zenoh::sample::Sample) + Send + Sync + 'static {
-    let sequences = Mutex::new(SequenceTracker::default());
     move |sample| {
-        let batch = match proto::validate::transition_batch(&sample.payload().to_bytes(), &limits) {
+        let batch = match proto::validate::transition_batch(&sample.payload().to_bytes(), &limits)
+            .and_then(|batch| check_sender(&shared, sample.key_expr().as_str(), &batch).map(|()| batch))
+        {
             Ok(batch) => batch,
             Err(e) => return count_rejection(&shared, &e),
         };
-        let check = lock(&sequences).check(batch.actor_id, batch.incarnation, batch.sequence);
+        let check = lock(&shared.sequences).check(batch.actor_id, batch.incarnation, batch.sequence);
         match check {
             Err(e) => return count_rejection(&shared, &e),
             Ok(proto::validate::SequenceCheck::Gap { missing }) => {
@@ -428,11 +617,6 @@ fn train(
     if let Some(checkpoint) = &start.resume {
         dqn.restore(checkpoint)?;
         progress = checkpoint.meta.progress.clone();
-        // After a crash, versions up to one checkpoint interval past this checkpoint's may
-        // have been published already; skip past them, so that every version number names one
-        // set of weights and actors (which take only newer versions) accept the next publish.
-        let published_between_checkpoints = config.learner.checkpoint_every / config.learner.weights_every.max(1);
-        progress.weights_version += published_between_checkpoints + 1;
         replay = checkpoint::load_replay(checkpoint)?;
         info!(
             updates = progress.updates,
@@ -442,6 +626,11 @@ fn train(
             checkpoint.path.display()
         );
     }
+    // A new learner session: its weights order after anything an earlier process of this run
+    // published (actors compare (session, version)), whatever it resumed with. Wall-clock
+    // milliseconds also order it after a session that crashed before its first checkpoint.
+    let now_ms = std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).map_or(0, |d| d.as_millis() as u64);
+    progress.learner_session = (progress.learner_session + 1).max(now_ms);
     let mut replay = match replay {
         Some(r) if r.config() == &config.replay => r,
         _ => Replay::new(config.replay.clone(), crawler_actor::env::OBS_DIM)
@@ -469,17 +658,25 @@ fn train(
     let save_checkpoint = |dqn: &Dqn, progress: &mut Progress, replay: Option<&Replay>| {
         progress.train_seconds = train_seconds();
         progress.epsilon = mean_epsilon(shared);
+        if !progress.epsilon.is_finite() {
+            progress.epsilon = 0.0;
+        }
         checkpoint::save(&checkpoint_dir, dqn, run_id, progress, &config_json, replay, config.learner.keep_checkpoints)
     };
     let publish = |dqn: &Dqn, progress: &mut Progress| {
+        if !dqn.online.all_finite() {
+            warn!(updates = progress.updates, "the online network holds non-finite weights: not publishing them");
+            return;
+        }
         progress.weights_version += 1;
         let message = proto::Weights {
             protocol_version: PROTOCOL_VERSION,
             run_id: run_id.to_string(),
             version: progress.weights_version,
             learner_step: progress.updates,
-            network: Some(wire_spec(&dqn.config.network)),
+            network: Some((&dqn.config.network).into()),
             safetensors: checkpoint::encode_weights(&dqn.online),
+            learner_session: progress.learner_session,
         }
         .encode_to_vec();
         *lock(&shared.latest_weights) = message.clone();
@@ -517,21 +714,29 @@ fn train(
             let beta = config.replay.prioritized.map_or(0.0, |p| p.beta(progress.updates));
             if replay.sample(batch_size, config.dqn.gamma, beta, &mut rng, &mut sample).is_ok() {
                 let stats = dqn.update(&to_batch(&sample, batch_size, config.replay.prioritized.is_some()));
-                replay.update_priorities(&sample.keys, &stats.td_errors);
                 rate.record_sample(batch_size);
+                if !stats.applied {
+                    let skipped = shared.skipped_updates.fetch_add(1, Ordering::Relaxed) + 1;
+                    if skipped <= 3 || skipped.is_multiple_of(1000) {
+                        warn!(skipped, loss = stats.loss, grad_norm = stats.grad_norm, "skipped a non-finite update");
+                    }
+                    continue;
+                }
+                replay.update_priorities(&sample.keys, &stats.td_errors);
                 progress.updates += 1;
                 last_loss = (stats.loss, stats.mean_q);
                 losses.add(stats.loss, stats.mean_q);
-                if !stats.loss.is_finite() {
-                    warn!(updates = progress.updates, "non-finite loss");
-                }
                 if progress.updates.is_multiple_of(config.learner.weights_every) {
                     publish(&dqn, &mut progress);
                 }
                 let every = config.learner.checkpoint_every;
                 if every > 0 && progress.updates.is_multiple_of(every) {
-                    let path = save_checkpoint(&dqn, &mut progress, None)?;
-                    last_checkpoint = Some(path);
+                    // A failed periodic checkpoint (disk full, say) is logged; training goes
+                    // on and the older checkpoints stay. The final one's error is returned.
+                    match save_checkpoint(&dqn, &mut progress, None) {
+                        Ok(path) => last_checkpoint = Some(path),
+                        Err(e) => warn!("periodic checkpoint failed: {e}"),
+                    }
                 }
             }
         }
@@ -544,6 +749,7 @@ fn train(
         if status_clock.elapsed().as_secs_f64() >= config.learner.status_every_s {
             let seconds = status_clock.elapsed().as_secs_f64();
             let actors = lock(&shared.actors).clone();
+            actor_transitions.retain(|id, _| actors.contains_key(id));
             let ingest_per_second = actors
                 .iter()
                 .map(|(&id, view)| {
@@ -563,16 +769,21 @@ fn train(
                 weights_version: progress.weights_version,
                 loss: last_loss.0,
                 mean_q: last_loss.1,
-                connected_actors: lock(&shared.connected).iter().copied().collect(),
+                connected_actors: shared.connected().into_iter().collect(),
                 actors,
                 ingest_per_second,
                 rejected: lock(&shared.rejected).clone(),
                 dropped_batches: shared.dropped_batches.load(Ordering::Relaxed),
+                skipped_updates: shared.skipped_updates.load(Ordering::Relaxed),
+                ignored_tokens: shared.ignored_tokens.load(Ordering::Relaxed),
                 last_checkpoint: last_checkpoint.as_ref().map(|p| p.display().to_string()),
                 last_evaluation_speed: lock(&shared.evaluation).as_ref().map(|e| e.speed),
             };
             report(&status, run_dir);
-            write_status_metrics(&mut metrics, &status);
+            if status.connected_actors.is_empty() && status.env_steps_per_second == 0.0 {
+                warn!("no actor is connected and no transitions arrive: training waits for actors");
+            }
+            write_status_metrics(&mut metrics, &status, shared);
             status_clock = Instant::now();
             status_counts = (progress.updates, progress.env_steps);
         }
@@ -643,7 +854,7 @@ fn write_episode_metrics(metrics: &mut MetricsWriter, shared: &Shared, train_sec
             ("flips", f64::from(e.flips)),
         ];
         let mut tags: Vec<(String, f64)> = fields.iter().map(|(name, v)| (format!("{group}/{name}"), *v)).collect();
-        if !e.evaluation {
+        if !e.evaluation && shared.may_tag(e.actor_id) {
             tags.push((format!("actor/{}/speed", e.actor_id), f64::from(e.speed)));
             tags.push((format!("actor/{}/epsilon", e.actor_id), e.epsilon));
         }
@@ -656,7 +867,7 @@ fn write_episode_metrics(metrics: &mut MetricsWriter, shared: &Shared, train_sec
 }
 
 /// The status report's throughput and health figures as scalars.
-fn write_status_metrics(metrics: &mut MetricsWriter, status: &Status) {
+fn write_status_metrics(metrics: &mut MetricsWriter, status: &Status, shared: &Shared) {
     let mut scalars = vec![
         ("throughput/env_steps_per_s", status.env_steps_per_second),
         ("throughput/updates_per_s", status.updates_per_second),
@@ -668,8 +879,12 @@ fn write_status_metrics(metrics: &mut MetricsWriter, status: &Status) {
         ("progress/physics_steps", status.physics_steps as f64),
         ("progress/updates", status.updates as f64),
     ];
-    let ingest: Vec<(String, f64)> =
-        status.ingest_per_second.iter().map(|(id, rate)| (format!("actor/{id}/ingest_per_s"), *rate)).collect();
+    let ingest: Vec<(String, f64)> = status
+        .ingest_per_second
+        .iter()
+        .filter(|(id, _)| shared.may_tag(**id))
+        .map(|(id, rate)| (format!("actor/{id}/ingest_per_s"), *rate))
+        .collect();
     scalars.extend(ingest.iter().map(|(t, v)| (t.as_str(), *v)));
     if let Err(e) = metrics.write(status.elapsed_s, status.env_steps, &scalars).and_then(|()| metrics.flush()) {
         warn!("metrics: {e}");
@@ -719,15 +934,6 @@ fn to_batch(sample: &SampledBatch, batch: usize, weighted: bool) -> Batch {
     }
 }
 
-fn wire_spec(spec: &crawler_actor::policy::NetworkSpec) -> proto::NetworkSpec {
-    proto::NetworkSpec {
-        obs_dim: spec.obs_dim as u32,
-        hidden: spec.hidden.iter().map(|&h| h as u32).collect(),
-        num_actions: spec.num_actions as u32,
-        layer_norm: spec.layer_norm,
-    }
-}
-
 /// Logs a status line and rewrites `status.json` atomically.
 fn report(status: &Status, run_dir: &Path) {
     let per_actor: Vec<String> = status
@@ -756,5 +962,58 @@ fn report(status: &Status, run_dir: &Path) {
         && std::fs::write(&temp, json).is_ok()
     {
         let _ = std::fs::rename(&temp, &path);
+    }
+}
+
+/// Whether any endpoint listens on an address other than loopback.
+pub fn listens_beyond_loopback(listen: &[String]) -> bool {
+    listen.iter().any(|endpoint| !is_loopback_endpoint(endpoint))
+}
+
+/// `PROTOCOL/HOST:PORT` with HOST 127.x.y.z, localhost or [::1].
+pub fn is_loopback_endpoint(endpoint: &str) -> bool {
+    let address = endpoint.split_once('/').map_or(endpoint, |(_, a)| a);
+    let address = address.split('#').next().unwrap_or(address);
+    let host = address.rsplit_once(':').map_or(address, |(h, _)| h);
+    let host = host.trim_start_matches('[').trim_end_matches(']');
+    host == "localhost" || host.parse::<std::net::IpAddr>().is_ok_and(|ip| ip.is_loopback())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn live_nodes_are_capped_and_leave_room_when_they_go() {
+        let mut live = LiveNodes { max: 3, ..LiveNodes::default() };
+        assert_eq!(live.admit(NodeKind::Actor, 0), Admission::Admitted);
+        assert_eq!(live.admit(NodeKind::Actor, 0), Admission::AlreadyLive);
+        assert_eq!(live.admit(NodeKind::Evaluator, 0), Admission::Admitted);
+        assert_eq!(live.admit(NodeKind::Actor, 1), Admission::Admitted);
+        assert_eq!(live.admit(NodeKind::Actor, 2), Admission::Full);
+        assert!(!live.holds(NodeKind::Actor, 2));
+        assert!(live.leave(NodeKind::Actor, 1));
+        assert!(!live.leave(NodeKind::Actor, 1));
+        assert_eq!(live.admit(NodeKind::Actor, 2), Admission::Admitted);
+        assert!(live.holds(NodeKind::Evaluator, 0) && !live.holds(NodeKind::Evaluator, 2));
+    }
+
+    #[test]
+    fn assignments_stay_small_under_a_flood_of_queries() {
+        let shared = Shared::new(64);
+        lock(&shared.live).actors.extend([0, 1]);
+        let ids: Vec<u32> = (0..3000).map(|_| assign_actor_id(&shared)).collect();
+        assert!(ids.iter().all(|&id| (2..2 + MAX_PENDING_ASSIGNMENTS as u32 + 1).contains(&id)), "{ids:?}");
+        assert!(lock(&shared.assigned).len() <= MAX_PENDING_ASSIGNMENTS);
+    }
+
+    #[test]
+    fn loopback_endpoints_are_told_apart() {
+        for local in ["tcp/127.0.0.1:7447", "tcp/localhost:7447", "tcp/[::1]:7447", "tls/127.0.0.2:1"] {
+            assert!(is_loopback_endpoint(local), "{local}");
+        }
+        for remote in ["tcp/0.0.0.0:7447", "tcp/[::]:7447", "tcp/192.168.1.4:7447", "tcp/learner:7447"] {
+            assert!(!is_loopback_endpoint(remote), "{remote}");
+        }
     }
 }

@@ -9,6 +9,7 @@
 //! | `crawler/<run>/info`              | learner (queryable) | [`crate::RunInfo`]    |
 //! | `crawler/<run>/control`           | learner only    | [`crate::Control`]        |
 //! | `crawler/<run>/alive/actor/<id>`  | liveliness token of actor `<id>` |          |
+//! | `crawler/<run>/alive/evaluator/<id>` | liveliness token of evaluator `<id>` |      |
 //! | `crawler/<run>/alive/learner`     | liveliness token of the learner  |          |
 
 use crate::ProtoError;
@@ -72,6 +73,14 @@ pub fn alive_actor(run: &str, actor: u32) -> String {
 
 pub fn all_alive_actors(run: &str) -> String {
     format!("{ROOT}/{run}/alive/actor/*")
+}
+
+pub fn alive_evaluator(run: &str, evaluator: u32) -> String {
+    format!("{ROOT}/{run}/alive/evaluator/{evaluator}")
+}
+
+pub fn all_alive_evaluators(run: &str) -> String {
+    format!("{ROOT}/{run}/alive/evaluator/*")
 }
 
 pub fn alive_learner(run: &str) -> String {

@@ -16,8 +16,25 @@ pub use messages::*;
 pub use validate::{ProtoError, SequenceTracker, TransitionLimits};
 
 /// Version of the wire protocol. Bumped with any incompatible change to a message or key.
-pub const PROTOCOL_VERSION: u32 = 1;
+/// 2: run settings as a proto message (was JSON); weights ordered by learner session.
+pub const PROTOCOL_VERSION: u32 = 2;
 
-/// Largest encoded message a node accepts, in bytes. A transition batch of 1 024 transitions of
-/// 40 values is about 340 kB; a weights message of the study's network about 780 kB.
-pub const MAX_MESSAGE_BYTES: usize = 16 << 20;
+/// Largest encoded message a node accepts, in bytes. The largest legal messages: a batch of
+/// [`MAX_BATCH_TRANSITIONS`] transitions of 40 values (about 1.4 MB) and the weights of a
+/// network of [`MAX_NETWORK_PARAMETERS`] (about 3.6 MB); the study's network is 780 kB.
+pub const MAX_MESSAGE_BYTES: usize = 4 << 20;
+
+/// What zenoh itself buffers of one incoming message before dropping it
+/// (`transport/link/rx/max_message_size`, 1 GiB by default). Twice [`MAX_MESSAGE_BYTES`]: a
+/// message a little over the protocol's limit still reaches validation, where it is named and
+/// counted, while a huge one is dropped by zenoh before it costs more than this in memory.
+pub const TRANSPORT_MAX_MESSAGE_BYTES: usize = 2 * MAX_MESSAGE_BYTES;
+
+/// Most transitions in one batch.
+pub const MAX_BATCH_TRANSITIONS: usize = 4096;
+
+/// Most scalar parameters a Q-network may have: its weights must fit in one message.
+pub const MAX_NETWORK_PARAMETERS: usize = 900_000;
+
+/// Most hidden layers a Q-network may have.
+pub const MAX_HIDDEN_LAYERS: usize = 16;

@@ -91,6 +91,19 @@ pub struct Weights {
     /// The online network as a safetensors file, named like a PyTorch `nn.Sequential`.
     #[prost(bytes = "vec", tag = "6")]
     pub safetensors: Vec<u8>,
+    /// Which learner process of the run published these: 0 for the first, one more with
+    /// every resume. Weights are ordered by (`learner_session`, `version`), so a resumed
+    /// learner's first publish is newer than anything its crashed predecessor sent, whatever
+    /// settings it resumed with.
+    #[prost(uint64, tag = "7")]
+    pub learner_session: u64,
+}
+
+impl Weights {
+    /// The order in which weights supersede one another.
+    pub fn order(&self) -> (u64, u64) {
+        (self.learner_session, self.version)
+    }
 }
 
 /// What an actor needs to know about the run it joins; served by the learner.
@@ -100,14 +113,101 @@ pub struct RunInfo {
     pub protocol_version: u32,
     #[prost(string, tag = "2")]
     pub run_id: String,
-    /// The actors' settings (environment, exploration, batching) as JSON; the actor crate
-    /// defines and validates its schema.
-    #[prost(string, tag = "3")]
-    pub actor_settings_json: String,
+    /// The actors' settings: environment, exploration, batching.
+    #[prost(message, optional, tag = "5")]
+    pub settings: Option<ActorSettings>,
     /// For a query with the parameter `assign`: an actor id that no connected actor holds and
     /// that was not handed out in the last 30 s (actors started with `--id auto`).
     #[prost(uint32, optional, tag = "4")]
     pub assigned_actor_id: Option<u32>,
+}
+
+// Tag 3 of RunInfo (the settings as JSON, protocol 1) is retired: never reuse it.
+
+/// The crawler environment's settings (the actor crate's `EnvConfig`, field for field).
+#[derive(Clone, PartialEq, prost::Message)]
+pub struct EnvSettings {
+    #[prost(uint32, tag = "1")]
+    pub action_levels: u32,
+    #[prost(uint32, tag = "2")]
+    pub action_repeat: u32,
+    #[prost(enumeration = "Direction", tag = "3")]
+    pub direction: i32,
+    #[prost(float, tag = "4")]
+    pub max_torque: f32,
+    #[prost(float, tag = "5")]
+    pub dt: f32,
+    #[prost(uint32, tag = "6")]
+    pub min_episode_steps: u32,
+    #[prost(uint32, tag = "7")]
+    pub max_episode_steps: u32,
+    #[prost(float, tag = "8")]
+    pub min_progress_per_step: f32,
+    #[prost(bool, tag = "9")]
+    pub sliding_base: bool,
+    #[prost(uint32, tag = "10")]
+    pub solver_iterations: u32,
+    /// [low, high] in degrees.
+    #[prost(float, repeated, tag = "11")]
+    pub start_joint1_deg: Vec<f32>,
+    #[prost(float, repeated, tag = "12")]
+    pub start_joint2_deg: Vec<f32>,
+}
+
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, PartialOrd, Ord, prost::Enumeration)]
+#[repr(i32)]
+pub enum Direction {
+    Forward = 0,
+    Backward = 1,
+}
+
+/// Ape-X's fixed per-actor ε: actor i of `actors` uses base^(1 + alpha·i/(actors − 1)).
+#[derive(Clone, PartialEq, prost::Message)]
+pub struct EpsilonLadder {
+    #[prost(double, tag = "1")]
+    pub base: f64,
+    #[prost(double, tag = "2")]
+    pub alpha: f64,
+    #[prost(uint32, tag = "3")]
+    pub actors: u32,
+}
+
+/// The study's decaying ε: `start`, × `factor` every `every` decisions, floored at `min`.
+#[derive(Clone, PartialEq, prost::Message)]
+pub struct EpsilonDecay {
+    #[prost(double, tag = "1")]
+    pub start: f64,
+    #[prost(double, tag = "2")]
+    pub factor: f64,
+    #[prost(uint64, tag = "3")]
+    pub every: u64,
+    #[prost(double, tag = "4")]
+    pub min: f64,
+}
+
+#[derive(Clone, PartialEq, prost::Oneof)]
+pub enum Exploration {
+    #[prost(message, tag = "1")]
+    Ladder(EpsilonLadder),
+    #[prost(message, tag = "2")]
+    Decay(EpsilonDecay),
+}
+
+/// What every actor of a run is told by the learner (the actor crate's `ActorSettings`).
+#[derive(Clone, PartialEq, prost::Message)]
+pub struct ActorSettings {
+    #[prost(message, optional, tag = "1")]
+    pub env: Option<EnvSettings>,
+    #[prost(uint32, tag = "2")]
+    pub envs_per_actor: u32,
+    #[prost(uint32, tag = "3")]
+    pub batch_transitions: u32,
+    #[prost(oneof = "Exploration", tags = "4, 5")]
+    pub exploration: Option<Exploration>,
+    #[prost(uint64, tag = "6")]
+    pub seed: u64,
+    #[prost(double, tag = "7")]
+    pub status_interval_s: f64,
 }
 
 /// One finished episode.

@@ -34,6 +34,16 @@ pub enum ProtoError {
     Replayed { actor: u32, got: u64, last: u64 },
     #[error("network spec is invalid: {0}")]
     Network(String),
+    #[error("field `{field}` holds {value} at index {index}, outside its physical range [{low}, {high}]")]
+    OutOfRange { field: &'static str, index: usize, value: f64, low: f64, high: f64 },
+    #[error("env id {env} at index {index} is outside 0..{envs_per_actor} (the run's crawlers per actor)")]
+    EnvId { env: u32, index: usize, envs_per_actor: u32 },
+    #[error("message on key `{key}` claims actor {payload}: a node may only put under its own id")]
+    KeyMismatch { key: String, payload: u32 },
+    #[error("actor {actor} holds no liveliness token in this run: its messages are not kept")]
+    NotLive { actor: u32 },
+    #[error("run info carries no actor settings")]
+    MissingSettings,
 }
 
 impl ProtoError {
@@ -52,6 +62,11 @@ impl ProtoError {
             ProtoError::Action { .. } => "action",
             ProtoError::Replayed { .. } => "replayed",
             ProtoError::Network(_) => "network",
+            ProtoError::OutOfRange { .. } => "out_of_range",
+            ProtoError::EnvId { .. } => "env_id",
+            ProtoError::KeyMismatch { .. } => "key_mismatch",
+            ProtoError::NotLive { .. } => "not_live",
+            ProtoError::MissingSettings => "missing_settings",
         }
     }
 }
@@ -75,6 +90,16 @@ pub fn check_envelope(version: u32, run_id: &str, expected_run: &str) -> Result<
     Ok(())
 }
 
+/// Checks that the actor id in a message's key (`crawler/<run>/<kind>/<id>`) is the one in
+/// its payload, so one actor cannot speak for another.
+pub fn check_sender(key: &str, payload_actor: u32) -> Result<(), ProtoError> {
+    if crate::keys::trailing_id(key) == Some(payload_actor) {
+        Ok(())
+    } else {
+        Err(ProtoError::KeyMismatch { key: key.chars().take(200).collect(), payload: payload_actor })
+    }
+}
+
 /// What a valid transition batch of this run looks like.
 #[derive(Debug, Clone, PartialEq)]
 pub struct TransitionLimits {
@@ -82,6 +107,47 @@ pub struct TransitionLimits {
     pub obs_dim: u32,
     pub num_actions: u32,
     pub max_batch: usize,
+    /// Crawlers per actor: every env id is below this.
+    pub envs_per_actor: u32,
+    /// The inclusive physical range `[low, high]` of each observation value, `obs_dim`
+    /// entries (the environment documents them, with a margin).
+    pub observation_range: Vec<[f32; 2]>,
+    /// The largest |reward| one decision can earn.
+    pub max_abs_reward: f32,
+}
+
+/// Largest priority a batch may propose for prioritised replay.
+pub const MAX_PRIORITY: f32 = 1e6;
+
+fn within(field: &'static str, values: &[f32], low: f32, high: f32) -> Result<(), ProtoError> {
+    match values.iter().position(|v| !(low..=high).contains(v)) {
+        Some(index) => Err(ProtoError::OutOfRange {
+            field,
+            index,
+            value: f64::from(values[index]),
+            low: f64::from(low),
+            high: f64::from(high),
+        }),
+        None => Ok(()),
+    }
+}
+
+fn observations_within(field: &'static str, values: &[f32], ranges: &[[f32; 2]]) -> Result<(), ProtoError> {
+    if ranges.is_empty() {
+        return Ok(());
+    }
+    for (index, (value, [low, high])) in values.iter().zip(ranges.iter().cycle()).enumerate() {
+        if !(*low..=*high).contains(value) {
+            return Err(ProtoError::OutOfRange {
+                field,
+                index,
+                value: f64::from(*value),
+                low: f64::from(*low),
+                high: f64::from(*high),
+            });
+        }
+    }
+    Ok(())
 }
 
 fn finite(field: &'static str, values: &[f32]) -> Result<(), ProtoError> {
@@ -120,6 +186,7 @@ pub fn transition_batch(bytes: &[u8], limits: &TransitionLimits) -> Result<Trans
     if !batch.priorities.is_empty() {
         length("priorities", batch.priorities.len(), n)?;
         finite("priorities", &batch.priorities)?;
+        within("priorities", &batch.priorities, 0.0, MAX_PRIORITY)?;
     }
     finite("observations", &batch.observations)?;
     finite("next_observations", &batch.next_observations)?;
@@ -127,6 +194,13 @@ pub fn transition_batch(bytes: &[u8], limits: &TransitionLimits) -> Result<Trans
     if let Some((index, &action)) = batch.actions.iter().enumerate().find(|(_, a)| **a >= limits.num_actions) {
         return Err(ProtoError::Action { action, index, num_actions: limits.num_actions });
     }
+    if let Some((index, &env)) = batch.env_ids.iter().enumerate().find(|(_, e)| **e >= limits.envs_per_actor) {
+        return Err(ProtoError::EnvId { env, index, envs_per_actor: limits.envs_per_actor });
+    }
+    // Finite is not enough: values near f32::MAX square to infinity in the loss.
+    observations_within("observations", &batch.observations, &limits.observation_range)?;
+    observations_within("next_observations", &batch.next_observations, &limits.observation_range)?;
+    within("rewards", &batch.rewards, -limits.max_abs_reward, limits.max_abs_reward)?;
     Ok(batch)
 }
 
@@ -135,10 +209,79 @@ pub fn weights(bytes: &[u8], run_id: &str) -> Result<Weights, ProtoError> {
     let weights: Weights = decode(bytes, "weights")?;
     check_envelope(weights.protocol_version, &weights.run_id, run_id)?;
     let spec = weights.network.as_ref().ok_or_else(|| ProtoError::Network("missing".into()))?;
+    network_spec(spec)?;
+    Ok(weights)
+}
+
+/// Scalar parameters of an MLP `obs_dim → hidden… → num_actions` (with LayerNorm's two
+/// vectors per hidden layer when `layer_norm`), or None when the count overflows.
+pub fn parameter_count(obs_dim: u64, hidden: &[u64], num_actions: u64, layer_norm: bool) -> Option<u64> {
+    let mut total = 0u64;
+    let mut inputs = obs_dim;
+    for &width in hidden.iter().chain(std::iter::once(&num_actions)) {
+        let linear = inputs.checked_mul(width)?.checked_add(width)?;
+        total = total.checked_add(linear)?;
+        inputs = width;
+    }
+    if layer_norm {
+        for &width in hidden {
+            total = total.checked_add(width.checked_mul(2)?)?;
+        }
+    }
+    Some(total)
+}
+
+/// Checks a network's shape: positive sizes, at most [`crate::MAX_HIDDEN_LAYERS`] hidden
+/// layers and [`crate::MAX_NETWORK_PARAMETERS`] parameters, so that no declared shape can
+/// make a node allocate more than a message can carry.
+pub fn network_spec(spec: &NetworkSpec) -> Result<(), ProtoError> {
     if spec.obs_dim == 0 || spec.num_actions == 0 || spec.hidden.contains(&0) {
         return Err(ProtoError::Network(format!("{spec:?} has a zero size")));
     }
-    Ok(weights)
+    if spec.hidden.len() > crate::MAX_HIDDEN_LAYERS {
+        return Err(ProtoError::Network(format!(
+            "{} hidden layers, at most {} allowed",
+            spec.hidden.len(),
+            crate::MAX_HIDDEN_LAYERS
+        )));
+    }
+    let hidden: Vec<u64> = spec.hidden.iter().map(|&h| u64::from(h)).collect();
+    let count = parameter_count(u64::from(spec.obs_dim), &hidden, u64::from(spec.num_actions), spec.layer_norm);
+    match count {
+        Some(count) if count <= crate::MAX_NETWORK_PARAMETERS as u64 => Ok(()),
+        _ => Err(ProtoError::Network(format!(
+            "{} parameters, at most {} allowed",
+            count.map_or_else(|| "more than 2^64".to_string(), |c| c.to_string()),
+            crate::MAX_NETWORK_PARAMETERS
+        ))),
+    }
+}
+
+/// Physical limits of the numbers in episode stats and status reports: far beyond anything a
+/// crawler does, tight enough that no value can overflow a sum or a moving average.
+pub mod report_limits {
+    /// m/s: the crawler's best gait is about 1 m/s.
+    pub const MAX_ABS_SPEED: f32 = 100.0;
+    /// m in one episode.
+    pub const MAX_ABS_DISTANCE: f32 = 1e5;
+    /// s of simulated time in one episode (the longest is 500 × 100 000 × 0.02 s).
+    pub const MAX_DURATION: f32 = 1e6;
+    /// |return| of one episode: at most 1 per physics step.
+    pub const MAX_ABS_RETURN: f32 = 1e9;
+    /// Decisions per second one actor can report.
+    pub const MAX_STEPS_PER_SECOND: f32 = 1e8;
+    /// Crawlers per actor.
+    pub const MAX_ENVS: u32 = 1024;
+}
+
+fn probability(field: &'static str, value: f64) -> Result<(), ProtoError> {
+    if (0.0..=1.0).contains(&value) {
+        Ok(())
+    } else if value.is_finite() {
+        Err(ProtoError::OutOfRange { field, index: 0, value, low: 0.0, high: 1.0 })
+    } else {
+        Err(ProtoError::NonFinite { field, index: 0 })
+    }
 }
 
 /// Decodes and checks an episode-stats message.
@@ -154,9 +297,13 @@ pub fn episode_stats(bytes: &[u8], run_id: &str) -> Result<EpisodeStats, ProtoEr
         stats.speed,
     ];
     finite("episode stats", &values)?;
-    if !stats.epsilon.is_finite() {
-        return Err(ProtoError::NonFinite { field: "epsilon", index: 0 });
-    }
+    probability("epsilon", stats.epsilon)?;
+    use report_limits::*;
+    let returns = [stats.episode_return, stats.return_position, stats.return_upright];
+    within("episode returns", &returns, -MAX_ABS_RETURN, MAX_ABS_RETURN)?;
+    within("distance", &[stats.distance], -MAX_ABS_DISTANCE, MAX_ABS_DISTANCE)?;
+    within("duration", &[stats.duration], 0.0, MAX_DURATION)?;
+    within("speed", &[stats.speed], -MAX_ABS_SPEED, MAX_ABS_SPEED)?;
     Ok(stats)
 }
 
@@ -164,6 +311,19 @@ pub fn episode_stats(bytes: &[u8], run_id: &str) -> Result<EpisodeStats, ProtoEr
 pub fn actor_status(bytes: &[u8], run_id: &str) -> Result<ActorStatus, ProtoError> {
     let status: ActorStatus = decode(bytes, "actor status")?;
     check_envelope(status.protocol_version, &status.run_id, run_id)?;
+    probability("epsilon", status.epsilon)?;
+    use report_limits::*;
+    finite("env_steps_per_second", &[status.env_steps_per_second])?;
+    within("env_steps_per_second", &[status.env_steps_per_second], 0.0, MAX_STEPS_PER_SECOND)?;
+    if status.num_envs > MAX_ENVS {
+        return Err(ProtoError::OutOfRange {
+            field: "num_envs",
+            index: 0,
+            value: f64::from(status.num_envs),
+            low: 0.0,
+            high: f64::from(MAX_ENVS),
+        });
+    }
     Ok(status)
 }
 
@@ -181,6 +341,9 @@ pub fn run_info(bytes: &[u8]) -> Result<RunInfo, ProtoError> {
         return Err(ProtoError::Version { got: info.protocol_version, expected: PROTOCOL_VERSION });
     }
     crate::keys::check_run_id(&info.run_id)?;
+    if info.settings.as_ref().is_none_or(|s| s.env.is_none() || s.exploration.is_none()) {
+        return Err(ProtoError::MissingSettings);
+    }
     Ok(info)
 }
 
@@ -203,6 +366,20 @@ pub struct SequenceTracker {
 }
 
 impl SequenceTracker {
+    /// Forgets an actor that left, so the tracker holds only live actors.
+    pub fn forget(&mut self, actor: u32) {
+        self.last.remove(&actor);
+    }
+
+    /// Actors tracked.
+    pub fn len(&self) -> usize {
+        self.last.len()
+    }
+
+    pub fn is_empty(&self) -> bool {
+        self.last.is_empty()
+    }
+
     pub fn check(&mut self, actor: u32, incarnation: u64, sequence: u64) -> Result<SequenceCheck, ProtoError> {
         match self.last.get(&actor).copied() {
             Some((inc, last)) if inc == incarnation => {
@@ -229,7 +406,15 @@ mod tests {
     use super::*;
 
     fn limits() -> TransitionLimits {
-        TransitionLimits { run_id: "r".into(), obs_dim: 2, num_actions: 4, max_batch: 8 }
+        TransitionLimits {
+            run_id: "r".into(),
+            obs_dim: 2,
+            num_actions: 4,
+            max_batch: 8,
+            envs_per_actor: 2,
+            observation_range: vec![[-1.0, 1.0], [0.0, 10.0]],
+            max_abs_reward: 10.0,
+        }
     }
 
     fn batch(n: usize) -> TransitionBatch {
@@ -295,6 +480,22 @@ mod tests {
         let mut b = batch(2);
         b.priorities = vec![1.0];
         cases.push((b, "length"));
+        // Finite but outside the physical ranges: the values that overflow a loss.
+        let mut b = batch(2);
+        b.observations[1] = 3e38;
+        cases.push((b, "out_of_range"));
+        let mut b = batch(2);
+        b.next_observations[0] = -1.5;
+        cases.push((b, "out_of_range"));
+        let mut b = batch(2);
+        b.rewards[0] = -11.0;
+        cases.push((b, "out_of_range"));
+        let mut b = batch(2);
+        b.priorities = vec![1.0, -1.0];
+        cases.push((b, "out_of_range"));
+        let mut b = batch(2);
+        b.env_ids[1] = 2;
+        cases.push((b, "env_id"));
         for (b, kind) in cases {
             assert_eq!(check(&b).unwrap_err().kind(), kind, "{b:?}");
         }
@@ -337,10 +538,65 @@ mod tests {
             learner_step: 0,
             network: Some(NetworkSpec { obs_dim: 40, hidden: vec![8], num_actions: 25, layer_norm: true }),
             safetensors: vec![],
+            learner_session: 0,
         };
         assert!(weights(&w.encode_to_vec(), "r").is_ok());
         assert_eq!(weights(&w.encode_to_vec(), "s").unwrap_err().kind(), "run_id");
+        // Shapes that would need more memory than a message can carry.
+        for hidden in [vec![65_536; 1000], vec![4096, 4096], vec![u32::MAX; 3], vec![1; 17]] {
+            w.network = Some(NetworkSpec { obs_dim: 40, hidden: hidden.clone(), num_actions: 25, layer_norm: true });
+            let error = weights(&w.encode_to_vec(), "r").unwrap_err();
+            assert_eq!(error.kind(), "network", "{hidden:?}");
+        }
         w.network = None;
         assert_eq!(weights(&w.encode_to_vec(), "r").unwrap_err().kind(), "network");
+    }
+
+    #[test]
+    fn parameter_count_matches_the_study_network_and_never_overflows() {
+        let study = 40 * 512 + 512 * 3 + 512 * 256 + 256 * 3 + 256 * 128 + 128 * 3 + 128 * 25 + 25;
+        assert_eq!(parameter_count(40, &[512, 256, 128], 25, true), Some(study));
+        assert_eq!(parameter_count(40, &[u64::MAX, 2], 25, true), None);
+    }
+
+    #[test]
+    fn reports_with_impossible_numbers_are_rejected_by_name() {
+        let status = |epsilon: f64, rate: f32| ActorStatus {
+            protocol_version: PROTOCOL_VERSION,
+            run_id: "r".into(),
+            actor_id: 1,
+            epsilon,
+            env_steps_per_second: rate,
+            num_envs: 8,
+            ..Default::default()
+        };
+        assert!(actor_status(&status(0.4, 100.0).encode_to_vec(), "r").is_ok());
+        assert_eq!(actor_status(&status(f64::NAN, 1.0).encode_to_vec(), "r").unwrap_err().kind(), "non_finite");
+        assert_eq!(actor_status(&status(1.5, 1.0).encode_to_vec(), "r").unwrap_err().kind(), "out_of_range");
+        assert_eq!(actor_status(&status(0.1, -1.0).encode_to_vec(), "r").unwrap_err().kind(), "out_of_range");
+        let episode = |speed: f32, epsilon: f64| EpisodeStats {
+            protocol_version: PROTOCOL_VERSION,
+            run_id: "r".into(),
+            speed,
+            epsilon,
+            duration: 20.0,
+            ..Default::default()
+        };
+        assert!(episode_stats(&episode(0.9, 0.0).encode_to_vec(), "r").is_ok());
+        assert_eq!(episode_stats(&episode(3e38, 0.0).encode_to_vec(), "r").unwrap_err().kind(), "out_of_range");
+        assert_eq!(episode_stats(&episode(0.5, f64::NAN).encode_to_vec(), "r").unwrap_err().kind(), "non_finite");
+    }
+
+    #[test]
+    fn a_node_speaks_only_for_its_own_id() {
+        assert!(check_sender("crawler/r/transitions/3", 3).is_ok());
+        assert_eq!(check_sender("crawler/r/transitions/3", 4).unwrap_err().kind(), "key_mismatch");
+        assert_eq!(check_sender("crawler/r/transitions/x", 0).unwrap_err().kind(), "key_mismatch");
+    }
+
+    #[test]
+    fn run_info_without_settings_is_refused() {
+        let info = RunInfo { protocol_version: PROTOCOL_VERSION, run_id: "r".into(), ..Default::default() };
+        assert_eq!(run_info(&info.encode_to_vec()).unwrap_err().kind(), "missing_settings");
     }
 }

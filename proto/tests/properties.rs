@@ -11,7 +11,15 @@ use prost::Message;
 const OBS_DIM: u32 = 4;
 
 fn limits() -> TransitionLimits {
-    TransitionLimits { run_id: "run".into(), obs_dim: OBS_DIM, num_actions: 25, max_batch: 64 }
+    TransitionLimits {
+        run_id: "run".into(),
+        obs_dim: OBS_DIM,
+        num_actions: 25,
+        max_batch: 64,
+        envs_per_actor: 8,
+        observation_range: vec![[-1e3, 1e3]; OBS_DIM as usize],
+        max_abs_reward: 10.0,
+    }
 }
 
 fn valid_batch() -> impl Strategy<Value = TransitionBatch> {
@@ -65,6 +73,9 @@ fn consistent(batch: &TransitionBatch) -> bool {
             .all(|&l| l == n)
         && batch.observations.iter().chain(&batch.next_observations).chain(&batch.rewards).all(|v| v.is_finite())
         && batch.actions.iter().all(|&a| a < 25)
+        && batch.env_ids.iter().all(|&e| e < 8)
+        && batch.observations.iter().chain(&batch.next_observations).all(|v| v.abs() <= 1e3)
+        && batch.rewards.iter().all(|r| r.abs() <= 10.0)
 }
 
 proptest! {

@@ -54,12 +54,25 @@ fn a_learner_killed_with_sigkill_resumes_the_run_and_running_actors_reconnect() 
     let port = free_port();
     // No replay snapshot in periodic checkpoints: the resumed learner refills replay.
     let settings = ["--set", "learner.checkpoint_every=100", "--set", "rate.warmup=2000"];
-    let mut learner = Learner::start_on(port, SMOKE, runs.path(), "kill-learner", 0, &settings);
+    // Each save pauses before its rename: killed there, the learner has published 20 versions
+    // past the checkpoint it will resume from, so the actors hold newer numbers than it.
+    let pause = [("CRAWLER_FAULT_CHECKPOINT_PAUSE_MS", "400")];
+    let mut learner = Learner::start_on_with_env(port, SMOKE, runs.path(), "kill-learner", 0, &settings, &pause);
     let mut actors: Vec<Actor> = (0..2).map(|id| Actor::start(port, id, "kill-learner", runs.path())).collect();
-    let before = learner.wait_for(Duration::from_secs(120), "a few checkpoints", |s| u64_at(s, "/updates") >= 350);
+    let checkpoints = runs.path().join("kill-learner/checkpoints");
+    learner.wait_for(Duration::from_secs(120), "a few checkpoints", |s| u64_at(s, "/updates") >= 350);
+    let start = Instant::now();
+    while !std::fs::read_dir(&checkpoints)
+        .unwrap()
+        .flatten()
+        .any(|e| e.file_name().to_string_lossy().contains(".partial-"))
+    {
+        assert!(start.elapsed() < Duration::from_secs(60), "no checkpoint write to interrupt");
+        std::thread::sleep(Duration::from_millis(10));
+    }
     signal(learner.child.id(), "KILL");
     let _ = learner.child.wait();
-    let checkpoints = runs.path().join("kill-learner/checkpoints");
+    let before = crawler_tests::read_status(&learner.status_path()).unwrap();
     let saved = checkpoint::load(&checkpoints).unwrap();
     assert!(saved.meta.progress.updates >= 300, "{:?}", saved.meta.progress);
     assert!(checkpoint::load_replay(&saved).unwrap().is_none(), "periodic checkpoints hold no replay");
@@ -72,22 +85,38 @@ fn a_learner_killed_with_sigkill_resumes_the_run_and_running_actors_reconnect() 
     // The killed learner's last status.json must not pass for the new one's.
     std::fs::remove_file(runs.path().join("kill-learner/status.json")).unwrap();
     let restarted = Instant::now();
-    let mut resumed = Learner::resume_on(port, runs.path(), "kill-learner", 0, &[]);
+    // Resumed with other publishing settings, which the old version skip (computed from the
+    // config) got wrong: versions are ordered by (learner session, version) now, so this
+    // learner's first publish is newer than anything the killed one sent, whatever number it
+    // carries. With weights_every 100 000 it publishes only once, at start.
+    let overrides = ["--set", "learner.weights_every=100000", "--set", "learner.checkpoint_every=1000"];
+    let mut resumed = Learner::resume_on(port, runs.path(), "kill-learner", 0, &overrides);
     let status = resumed.wait_for(Duration::from_secs(60), "both actors reconnected and sending", |s| {
         s["connected_actors"] == serde_json::json!([0, 1])
             && (0..2).all(|id| u64_at(s, &format!("/actors/{id}/transitions")) > 0)
     });
     let reconnect = restarted.elapsed();
     eprintln!("actors reconnected and sending {:.1} s after the learner restarted", reconnect.as_secs_f64());
-    assert!(reconnect < Duration::from_secs(15), "{reconnect:?}");
 
-    // Counters continue from the checkpoint; the weights version moves past anything the
-    // killed learner may have published; the replay refills through the warm-up before
-    // training resumes, and the rate limiter allows no burst.
+    // Counters continue from the checkpoint. The killed learner had published past the
+    // checkpoint's version; the resumed one's only publish carries a lower number, and the
+    // surviving actors take it.
     let progress = &saved.meta.progress;
     assert!(u64_at(&status, "/updates") >= progress.updates);
     assert!(u64_at(&status, "/env_steps") >= progress.env_steps);
-    assert!(u64_at(&status, "/weights_version") > u64_at(&before, "/weights_version"), "{status:#}\n{before:#}");
+    let resumed_version = progress.weights_version + 1;
+    assert_eq!(u64_at(&status, "/weights_version"), resumed_version, "{status:#}");
+    for (id, steps) in actor_steps.iter().enumerate() {
+        let held = last_status_weights(&actors[id].log_text());
+        assert!(
+            held > resumed_version,
+            "actor {id} held v{held} (at {steps} steps), not newer than v{resumed_version}"
+        );
+    }
+    assert!(u64_at(&before, "/weights_version") > resumed_version, "{before:#}");
+    resumed.wait_for(Duration::from_secs(60), "the surviving actors acting on the resumed learner's weights", |s| {
+        (0..2).all(|id| u64_at(s, &format!("/actors/{id}/weights_version")) == resumed_version)
+    });
     let trained = resumed.wait_for(Duration::from_secs(60), "training after the warm-up", |s| {
         u64_at(s, "/updates") > progress.updates + 20
     });
@@ -110,6 +139,15 @@ fn a_learner_killed_with_sigkill_resumes_the_run_and_running_actors_reconnect() 
     for actor in &mut actors {
         let _ = actor.child.wait();
     }
+}
+
+/// The weights version of an actor's newest status log line before any line of the resumed
+/// learner's weights (the first status line whose version went down marks the switch).
+fn last_status_weights(log: &str) -> u64 {
+    let versions: Vec<u64> =
+        log.lines().filter(|l| l.contains("actor status")).filter_map(|l| log_field(l, "weights")).collect();
+    let switch = versions.windows(2).position(|w| w[1] < w[0]).map_or(versions.len(), |i| i + 1);
+    versions[..switch].last().copied().unwrap_or(0)
 }
 
 /// The step count of an actor's newest status log line.

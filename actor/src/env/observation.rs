@@ -43,6 +43,45 @@ pub const KNEE_TOUCH: usize = 29;
 pub const BASE_TOUCH: Range<usize> = 30..38;
 pub const PREV_ACTION: Range<usize> = 38..40;
 
+/// The physical range of each observation value, with a wide margin: what validation of a
+/// received transition accepts (`crawler_proto::TransitionLimits`). Far beyond what a
+/// crawler reaches, yet small enough that no value can overflow the TD loss in f32.
+///
+/// | values            | range                 | why                                        |
+/// |-------------------|-----------------------|--------------------------------------------|
+/// | base height       | [−10, 100] m          | the crawler lives on a floor at 0          |
+/// | quaternion        | [−1.01, 1.01]         | unit quaternion, with rounding             |
+/// | joint angles      | [−2π, 2π] rad         | hinge angles are kept in (−π, π]           |
+/// | linear velocity   | [−1000, 1000] m/s     |                                            |
+/// | angular velocities, joint rates | [−10⁴, 10⁴] rad/s |                              |
+/// | touch forces      | [0, 10⁶] N            | normal forces push, never pull             |
+/// | previous torques  | ±1.01·τmax N·m        | the action's torques                       |
+pub fn observation_range(max_torque: f32) -> Vec<[f32; 2]> {
+    let mut ranges = vec![[0.0f32; 2]; OBS_DIM];
+    let mut set = |range: Range<usize>, bounds: [f32; 2]| ranges[range].fill(bounds);
+    let tau = std::f32::consts::TAU;
+    set(BASE_Z..BASE_Z + 1, [-10.0, 100.0]);
+    set(BASE_QUAT, [-1.01, 1.01]);
+    set(JOINT_ANGLES, [-tau, tau]);
+    set(BASE_LINVEL, [-1e3, 1e3]);
+    for rates in [BASE_ANGVEL, JOINT_RATES, LINK1_ANGVEL, LINK2_ANGVEL] {
+        set(rates, [-1e4, 1e4]);
+    }
+    for touch in [TIP_TOUCH, KNEE_TOUCH..KNEE_TOUCH + 1, BASE_TOUCH] {
+        set(touch, [0.0, 1e6]);
+    }
+    let torque = 1.01 * max_torque;
+    set(PREV_ACTION, [-torque, torque]);
+    ranges
+}
+
+/// The largest |reward| of one decision: each physics step earns a position reward in
+/// (−0.5, 0.5) and an upright reward in [0, 0.5], so a decision held `action_repeat` steps
+/// earns less than `action_repeat` in magnitude (the margin covers rounding).
+pub fn max_abs_reward(action_repeat: u32) -> f32 {
+    1.01 * action_repeat as f32
+}
+
 /// Index (0-based) of the box corner nearest to a point given in the box's own frame,
 /// following the MJCF's corner numbering.
 pub(crate) fn corner_index(local: [f32; 3]) -> usize {
@@ -82,6 +121,14 @@ mod tests {
             }
         }
         assert!(covered.iter().all(|&c| c == 1), "{covered:?}");
+    }
+
+    #[test]
+    fn every_value_has_a_range() {
+        let ranges = observation_range(1.0);
+        assert_eq!(ranges.len(), OBS_DIM);
+        assert!(ranges.iter().all(|[low, high]| low < high && low.is_finite() && high.is_finite()));
+        assert_eq!(ranges[PREV_ACTION.start], [-1.01, 1.01]);
     }
 
     #[test]

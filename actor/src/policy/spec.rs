@@ -22,6 +22,29 @@ fn yes() -> bool {
     true
 }
 
+impl From<&NetworkSpec> for crawler_proto::NetworkSpec {
+    fn from(spec: &NetworkSpec) -> Self {
+        let narrow = |n: usize| u32::try_from(n).unwrap_or(u32::MAX);
+        crawler_proto::NetworkSpec {
+            obs_dim: narrow(spec.obs_dim),
+            hidden: spec.hidden.iter().map(|&h| narrow(h)).collect(),
+            num_actions: narrow(spec.num_actions),
+            layer_norm: spec.layer_norm,
+        }
+    }
+}
+
+impl From<&crawler_proto::NetworkSpec> for NetworkSpec {
+    fn from(wire: &crawler_proto::NetworkSpec) -> Self {
+        NetworkSpec {
+            obs_dim: wire.obs_dim as usize,
+            hidden: wire.hidden.iter().map(|&h| h as usize).collect(),
+            num_actions: wire.num_actions as usize,
+            layer_norm: wire.layer_norm,
+        }
+    }
+}
+
 /// One parameter tensor of the network: its `nn.Sequential` name and shape.
 #[derive(Debug, Clone, PartialEq, Eq)]
 pub struct ParamInfo {
@@ -80,7 +103,10 @@ impl NetworkSpec {
         if self.hidden.iter().any(|&w| w == 0 || w > 65_536) {
             return Err(format!("hidden widths {:?} must each be in 1..=65536", self.hidden));
         }
-        Ok(())
+        // The same limits as the wire's: weights must fit in one message, so no declared shape
+        // (a config, a checkpoint's meta.json) makes anyone allocate more.
+        let wire = crawler_proto::NetworkSpec::from(self);
+        crawler_proto::validate::network_spec(&wire).map_err(|e| e.to_string())
     }
 }
 

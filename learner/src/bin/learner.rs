@@ -47,6 +47,11 @@ struct Args {
     /// tls/ endpoints.
     #[command(flatten)]
     tls: TlsArgs,
+    /// Allow a plain-TCP (unauthenticated) listener on an address other than loopback, as
+    /// `learner.allow_plain_remote = true` does: anyone who reaches the port can then join as an
+    /// actor. For trusted networks only (a compose bridge network); elsewhere use mutual TLS.
+    #[arg(long)]
+    allow_plain_remote: bool,
     /// Extra zenoh settings, KEY=JSON5; applied last, so they override the TLS settings.
     #[arg(long = "zenoh", value_name = "KEY=JSON5", value_delimiter = ';')]
     zenoh: Vec<String>,
@@ -93,6 +98,7 @@ fn main() -> anyhow::Result<()> {
         );
     }
     let mut zenoh_overrides = Vec::new();
+    let mut identity = access_control::Identity::None;
     if let Some(tls) = args.tls.files().map_err(anyhow::Error::msg)? {
         check_tls_endpoints(&config.learner.listen, "learner.listen").map_err(anyhow::Error::msg)?;
         if args.actors > 0 {
@@ -102,8 +108,23 @@ fn main() -> anyhow::Result<()> {
             );
         }
         zenoh_overrides.extend(tls.zenoh_settings(TlsSide::Listen));
-        zenoh_overrides.push(("access_control".into(), access_control::policy(&run_id).to_string()));
+        identity = access_control::Identity::Certificates;
         info!("mutual TLS on; access control: actors and observers by certificate CN, everything else denied");
+    } else if service::listens_beyond_loopback(&config.learner.listen) {
+        if !(args.allow_plain_remote || config.learner.allow_plain_remote) {
+            bail!(
+                "learner.listen {:?} accepts unauthenticated plain TCP from other hosts: anyone who reaches the \
+                 port could join as an actor and feed replay. Listen on 127.0.0.1, use mutual TLS \
+                 (--tls-ca/--tls-cert/--tls-key, see deploy/README.md), or on a trusted network opt in with \
+                 --allow-plain-remote (learner.allow_plain_remote = true)",
+                config.learner.listen
+            );
+        }
+        warn!(
+            listen = ?config.learner.listen,
+            "plain TCP beyond loopback (--allow-plain-remote): anyone who reaches this port can join as an actor \
+             and feed replay; use mutual TLS on untrusted networks"
+        );
     }
     zenoh_overrides.extend(crawler_actor::cli::zenoh_overrides(&args.zenoh).map_err(anyhow::Error::msg)?);
     let init_from = match &args.init_from {
@@ -136,18 +157,33 @@ fn main() -> anyhow::Result<()> {
             None => std::env::current_exe()?.with_file_name("actor"),
         };
         for id in 0..args.actors {
-            children.push(spawn_actor(&actor_bin, &local_endpoint, id, &run_id)?);
+            match spawn_actor(&actor_bin, &local_endpoint, id, &run_id) {
+                Ok(child) => children.push(child),
+                Err(e) => {
+                    reap(children, Duration::ZERO);
+                    return Err(e);
+                }
+            }
         }
         info!(count = args.actors, endpoint = %local_endpoint, "started local actors");
     }
-    let options =
-        ServiceOptions { config, run_id: run_id.clone(), run_dir: run_dir.clone(), resume, init_from, zenoh_overrides };
+    let options = ServiceOptions {
+        config,
+        run_id: run_id.clone(),
+        run_dir: run_dir.clone(),
+        resume,
+        init_from,
+        identity,
+        zenoh_overrides,
+    };
     let outcome = runtime.block_on(async {
         tokio::spawn(crawler_actor::node::stop_on_signal(Arc::clone(&stop)));
         service::run(options, Arc::clone(&stop)).await
     });
     stop.store(true, Ordering::SeqCst);
-    reap(children);
+    // After a clean end the actors heard the learner's stop; after an error nobody told
+    // them, so they are stopped at once rather than left to wait for a learner that is gone.
+    reap(children, if outcome.is_ok() { Duration::from_secs(10) } else { Duration::ZERO });
     let outcome = outcome?;
     info!(
         run = %run_id,
@@ -192,10 +228,10 @@ fn spawn_actor(binary: &Path, endpoint: &str, id: usize, run: &str) -> anyhow::R
     })
 }
 
-/// Waits up to 10 s for local actors to exit after the learner's stop message, then kills
+/// Waits up to `grace` for local actors to exit after the learner's stop message, then kills
 /// the rest.
-fn reap(mut children: Vec<Child>) {
-    let deadline = Instant::now() + Duration::from_secs(10);
+fn reap(mut children: Vec<Child>, grace: Duration) {
+    let deadline = Instant::now() + grace;
     while Instant::now() < deadline && children.iter_mut().any(|c| matches!(c.try_wait(), Ok(None))) {
         std::thread::sleep(Duration::from_millis(100));
     }

@@ -6,7 +6,15 @@ use crawler_proto::{SequenceTracker, TransitionLimits, validate};
 use libfuzzer_sys::fuzz_target;
 
 fuzz_target!(|data: &[u8]| {
-    let limits = TransitionLimits { run_id: "fuzz".into(), obs_dim: 40, num_actions: 25, max_batch: 4096 };
+    let limits = TransitionLimits {
+        run_id: "fuzz".into(),
+        obs_dim: 40,
+        num_actions: 25,
+        max_batch: 4096,
+        envs_per_actor: 8,
+        observation_range: vec![[-1e4, 1e4]; 40],
+        max_abs_reward: 10.0,
+    };
     if let Ok(batch) = validate::transition_batch(data, &limits) {
         let n = batch.actions.len();
         assert!(n > 0 && n <= limits.max_batch && batch.count as usize == n);

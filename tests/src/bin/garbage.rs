@@ -38,6 +38,14 @@ async fn main() -> anyhow::Result<()> {
     let args = Args::parse();
     let config = crawler_actor::node::client_config(std::slice::from_ref(&args.connect), &[])?;
     let session = zenoh::open(config).await.map_err(|e| anyhow::anyhow!("opening a zenoh session: {e}"))?;
+    // The learner keeps messages of live nodes only: hold the id's liveliness token, as an
+    // actor does, so the bad messages are judged on their content.
+    let _token = session
+        .liveliness()
+        .declare_token(keys::alive_actor(&args.run, args.id))
+        .await
+        .map_err(|e| anyhow::anyhow!("declaring liveliness: {e}"))?;
+    tokio::time::sleep(std::time::Duration::from_millis(500)).await;
     let transitions = keys::transitions(&args.run, args.id);
     let mut rng = ChaCha8Rng::seed_from_u64(u64::from(args.id));
     let mut sent: BTreeMap<&str, u32> = BTreeMap::new();

@@ -9,6 +9,9 @@
 //!   key with version [`FORGED_VERSION`], puts a Stop on the control key and a run info on the
 //!   info key (all outside an actor's rights), and a valid transition batch on its own
 //!   transitions key (inside them). At the end it prints what it sent as JSON.
+//! - `attack KIND --run RUN --id ID --seconds S`: one of the attacks of an outsider (or of an
+//!   insider with an actor certificate) on a running learner, for the attack suite in
+//!   `tests/tests/security.rs`; see [`Attack`]. Prints what it did as JSON on stdout.
 
 use std::io::Write;
 use std::time::{Duration, Instant};
@@ -38,7 +41,9 @@ struct Args {
 #[derive(Debug, Subcommand)]
 enum Mode {
     Listen {
-        key: String,
+        /// Key expressions to subscribe to (one subscriber each).
+        #[arg(required = true)]
+        keys: Vec<String>,
     },
     Forge {
         #[arg(long)]
@@ -48,6 +53,44 @@ enum Mode {
         #[arg(long, default_value_t = 5.0)]
         seconds: f64,
     },
+    Attack {
+        #[arg(value_enum)]
+        kind: Attack,
+        #[arg(long)]
+        run: String,
+        /// The actor id the attacker uses (attacks that need one hold its liveliness token).
+        #[arg(long, default_value_t = 900)]
+        id: u32,
+        /// How long attacks that hold something (a queryable, a subscriber) hold it.
+        #[arg(long, default_value_t = 5.0)]
+        seconds: f64,
+    },
+}
+
+/// The attacks, each named after what it tries.
+#[derive(Debug, Clone, Copy, clap::ValueEnum)]
+enum Attack {
+    /// Put the genuine weights re-stamped with session and version u64::MAX.
+    ForgedWeights,
+    /// Put a Stop on the control key.
+    Stop,
+    /// Serve the run-info key with three action levels, and with empty settings.
+    ForgedInfo,
+    /// Status reports with ε = NaN and ε = 7, from a live id.
+    NanEpsilon,
+    /// Valid batches whose observations are finite but 3e38, from a live id.
+    HugeObservations,
+    /// Subscribe to every actor's transitions and never read.
+    StalledSubscriber,
+    /// 100 000 status reports and 20 000 batches under distinct actor and env ids.
+    Flood,
+    /// One 200 MiB put on a transitions key.
+    HugeMessage,
+    /// 50 liveliness tokens of made-up actors and 3 000 `assign` queries.
+    Tokens,
+    /// Batches and status put under another actor's key (id 0), and one's own key with
+    /// another id in the payload.
+    Impersonate,
 }
 
 #[tokio::main(flavor = "multi_thread", worker_threads = 1)]
@@ -62,15 +105,219 @@ async fn main() -> anyhow::Result<()> {
     let config = crawler_actor::node::client_config(std::slice::from_ref(&args.connect), &overrides)?;
     let session = zenoh::open(config).await.map_err(|e| anyhow::anyhow!("opening a zenoh session: {e}"))?;
     match args.mode {
-        Mode::Listen { key } => listen(&session, &key).await,
+        Mode::Listen { keys } => listen(&session, &keys).await,
         Mode::Forge { run, id, seconds } => forge(&session, &run, id, Duration::from_secs_f64(seconds)).await,
+        Mode::Attack { kind, run, id, seconds } => {
+            let report = attack(&session, kind, &run, id, Duration::from_secs_f64(seconds)).await?;
+            // Let the last messages leave before closing.
+            tokio::time::sleep(Duration::from_millis(500)).await;
+            session.close().await.map_err(|e| anyhow::anyhow!("closing: {e}"))?;
+            writeln!(std::io::stdout(), "{report}").context("writing stdout")?;
+            Ok(())
+        }
     }
 }
 
-async fn listen(session: &zenoh::Session, key: &str) -> anyhow::Result<()> {
-    let subscriber = session.declare_subscriber(key).await.map_err(|e| anyhow::anyhow!("subscribing to {key}: {e}"))?;
-    eprintln!("probe: listening on {key}");
-    while let Ok(sample) = subscriber.recv_async().await {
+fn err(context: &str) -> impl FnOnce(zenoh::Error) -> anyhow::Error + '_ {
+    move |e| anyhow::anyhow!("{context}: {e}")
+}
+
+async fn put(session: &zenoh::Session, key: &str, bytes: Vec<u8>) -> anyhow::Result<()> {
+    session.put(key, bytes).congestion_control(CongestionControl::Block).await.map_err(err(key))
+}
+
+/// The learner's genuine weights (any session may query them).
+async fn genuine_weights(session: &zenoh::Session, run: &str) -> anyhow::Result<proto::Weights> {
+    let deadline = Instant::now() + Duration::from_secs(30);
+    loop {
+        let replies = session.get(keys::weights(run)).timeout(Duration::from_secs(2)).await.map_err(err("query"))?;
+        if let Ok(reply) = replies.recv_async().await
+            && let Ok(sample) = reply.result()
+        {
+            return Ok(proto::validate::weights(&sample.payload().to_bytes(), run)?);
+        }
+        anyhow::ensure!(Instant::now() < deadline, "no weights from the learner within 30 s");
+        tokio::time::sleep(Duration::from_millis(200)).await;
+    }
+}
+
+fn status_report(run: &str, id: u32, epsilon: f64) -> Vec<u8> {
+    proto::ActorStatus {
+        protocol_version: PROTOCOL_VERSION,
+        run_id: run.to_string(),
+        actor_id: id,
+        epsilon,
+        num_envs: 2,
+        ..Default::default()
+    }
+    .encode_to_vec()
+}
+
+async fn attack(
+    session: &zenoh::Session,
+    kind: Attack,
+    run: &str,
+    id: u32,
+    hold: Duration,
+) -> anyhow::Result<serde_json::Value> {
+    let mut sent = 0u64;
+    match kind {
+        Attack::ForgedWeights => {
+            let genuine = genuine_weights(session, run).await?;
+            let forged = proto::Weights { version: u64::MAX, learner_session: u64::MAX, ..genuine };
+            for _ in 0..15 {
+                put(session, &keys::weights(run), forged.encode_to_vec()).await?;
+                sent += 1;
+                tokio::time::sleep(Duration::from_millis(100)).await;
+            }
+        }
+        Attack::Stop => {
+            let stop = proto::Control {
+                protocol_version: PROTOCOL_VERSION,
+                run_id: run.to_string(),
+                command: proto::Command::Stop as i32,
+            };
+            for _ in 0..15 {
+                put(session, &keys::control(run), stop.encode_to_vec()).await?;
+                sent += 1;
+                tokio::time::sleep(Duration::from_millis(100)).await;
+            }
+        }
+        Attack::ForgedInfo => {
+            let run_id = run.to_string();
+            let replies = std::sync::Arc::new(std::sync::atomic::AtomicU64::new(0));
+            let counter = std::sync::Arc::clone(&replies);
+            let queryable = session
+                .declare_queryable(keys::info(run))
+                .callback(move |query| {
+                    let mut settings = proto::ActorSettings::default();
+                    let n = counter.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+                    // Every other reply: three action levels; else no settings at all.
+                    if n.is_multiple_of(2) {
+                        settings.env = Some(proto::EnvSettings { action_levels: 3, ..Default::default() });
+                    }
+                    let info = proto::RunInfo {
+                        protocol_version: PROTOCOL_VERSION,
+                        run_id: run_id.clone(),
+                        settings: Some(settings),
+                        assigned_actor_id: Some(0),
+                    };
+                    let _ = zenoh::Wait::wait(query.reply(query.key_expr().clone(), info.encode_to_vec()));
+                })
+                .await
+                .map_err(err("declaring a queryable"))?;
+            tokio::time::sleep(hold).await;
+            sent = replies.load(std::sync::atomic::Ordering::Relaxed);
+            drop(queryable);
+        }
+        Attack::NanEpsilon => {
+            let _token = session.liveliness().declare_token(keys::alive_actor(run, id)).await.map_err(err("token"))?;
+            tokio::time::sleep(Duration::from_millis(500)).await;
+            for epsilon in [f64::NAN, 7.0, f64::INFINITY] {
+                for _ in 0..5 {
+                    put(session, &keys::status(run, id), status_report(run, id, epsilon)).await?;
+                    sent += 1;
+                }
+            }
+        }
+        Attack::HugeObservations => {
+            let _token = session.liveliness().declare_token(keys::alive_actor(run, id)).await.map_err(err("token"))?;
+            tokio::time::sleep(Duration::from_millis(500)).await;
+            for sequence in 1..=30 {
+                let mut batch = valid_batch(run, id, sequence, 64);
+                batch.observations.fill(3e38);
+                batch.next_observations.fill(3e38);
+                put(session, &keys::transitions(run, id), batch.encode_to_vec()).await?;
+                sent += 1;
+            }
+        }
+        Attack::StalledSubscriber => {
+            // A subscriber whose queue nobody drains.
+            let subscriber = session
+                .declare_subscriber(keys::all_transitions(run))
+                .with(zenoh::handlers::FifoChannel::new(1))
+                .await
+                .map_err(err("subscribing"))?;
+            tokio::time::sleep(hold).await;
+            sent = subscriber.len() as u64;
+            drop(subscriber);
+        }
+        Attack::Flood => {
+            for actor in 0..100_000u32 {
+                let id = 10_000 + actor;
+                let bytes = status_report(run, id, 0.1);
+                session.put(keys::status(run, id), bytes).await.map_err(err("status"))?;
+                sent += 1;
+            }
+            let _token = session.liveliness().declare_token(keys::alive_actor(run, id)).await.map_err(err("token"))?;
+            tokio::time::sleep(Duration::from_millis(500)).await;
+            for sequence in 1..=20_000u64 {
+                let actor = if sequence.is_multiple_of(2) { id } else { 200_000 + sequence as u32 };
+                let mut batch = valid_batch(run, actor, sequence, 1);
+                batch.env_ids = vec![sequence as u32];
+                put(session, &keys::transitions(run, actor), batch.encode_to_vec()).await?;
+                sent += 1;
+            }
+        }
+        Attack::HugeMessage => {
+            put(session, &keys::transitions(run, id), vec![7u8; 200 << 20]).await?;
+            sent = 1;
+        }
+        Attack::Tokens => {
+            let mut tokens = Vec::new();
+            for fake in 0..50 {
+                let key = keys::alive_actor(run, 5_000 + fake);
+                tokens.push(session.liveliness().declare_token(key).await.map_err(err("token"))?);
+            }
+            let selector = format!("{}?{}", keys::info(run), keys::ASSIGN_PARAMETER);
+            for _ in 0..3_000 {
+                let replies = session.get(&selector).timeout(Duration::from_secs(2)).await.map_err(err("query"))?;
+                while replies.recv_async().await.is_ok() {}
+                sent += 1;
+            }
+            // Report now: the tokens stay while the test starts a genuine `--id auto` actor.
+            let report = serde_json::json!({ "attack": format!("{kind:?}"), "sent": sent, "holding": true });
+            let mut stdout = std::io::stdout().lock();
+            writeln!(stdout, "{report}").context("writing stdout")?;
+            stdout.flush().context("flushing stdout")?;
+            drop(stdout);
+            tokio::time::sleep(hold).await;
+            drop(tokens);
+        }
+        Attack::Impersonate => {
+            let _token = session.liveliness().declare_token(keys::alive_actor(run, id)).await.map_err(err("token"))?;
+            tokio::time::sleep(Duration::from_millis(500)).await;
+            for sequence in 1..=10 {
+                // Under actor 0's key, in its name.
+                let batch = valid_batch(run, 0, 1_000_000 + sequence, 8);
+                put(session, &keys::transitions(run, 0), batch.encode_to_vec()).await?;
+                // Under its own key, in actor 0's name.
+                put(session, &keys::transitions(run, id), batch.encode_to_vec()).await?;
+                put(session, &keys::status(run, id), status_report(run, 0, 0.1)).await?;
+                sent += 3;
+            }
+        }
+    }
+    Ok(serde_json::json!({ "attack": format!("{kind:?}"), "sent": sent }))
+}
+
+async fn listen(session: &zenoh::Session, keys: &[String]) -> anyhow::Result<()> {
+    let (tx, rx) = flume_like_channel();
+    let mut subscribers = Vec::new();
+    for key in keys {
+        let tx = tx.clone();
+        let subscriber = session
+            .declare_subscriber(key)
+            .callback(move |sample| {
+                let _ = tx.send(sample);
+            })
+            .await
+            .map_err(|e| anyhow::anyhow!("subscribing to {key}: {e}"))?;
+        subscribers.push(subscriber);
+        eprintln!("probe: listening on {key}");
+    }
+    drop(tx);
+    while let Ok(sample) = rx.recv() {
         let key = sample.key_expr().as_str().to_string();
         let bytes = sample.payload().to_bytes();
         let weights_version = key.ends_with("/weights").then(|| proto::Weights::decode(&bytes[..]).ok()).flatten();
@@ -88,7 +335,17 @@ async fn listen(session: &zenoh::Session, key: &str) -> anyhow::Result<()> {
     Ok(())
 }
 
+/// An unbounded channel from zenoh's callbacks to the printing loop (a probe prints what
+/// arrives; it never holds the router up).
+fn flume_like_channel()
+-> (std::sync::mpsc::Sender<zenoh::sample::Sample>, std::sync::mpsc::Receiver<zenoh::sample::Sample>) {
+    std::sync::mpsc::channel()
+}
+
 async fn forge(session: &zenoh::Session, run: &str, id: u32, duration: Duration) -> anyhow::Result<()> {
+    // Like an actor, it holds its id's liveliness token (the learner keeps only live ids'
+    // messages). The observer's is denied, as are its puts.
+    let _token = session.liveliness().declare_token(keys::alive_actor(run, id)).await.map_err(err("token"))?;
     // Genuine weights to tamper with: an actor may query them.
     let deadline = Instant::now() + Duration::from_secs(30);
     let genuine = loop {
@@ -115,7 +372,7 @@ async fn forge(session: &zenoh::Session, run: &str, id: u32, duration: Duration)
     let info = proto::RunInfo {
         protocol_version: PROTOCOL_VERSION,
         run_id: run.to_string(),
-        actor_settings_json: "{}".into(),
+        settings: None,
         assigned_actor_id: None,
     }
     .encode_to_vec();
