@@ -286,3 +286,21 @@ mod tests {
         assert!(ActorSettings::try_from(&no_envs).is_err());
     }
 }
+
+#[cfg(test)]
+mod wire_tests {
+    use super::*;
+    use prost::Message;
+
+    #[test]
+    fn settings_survive_encoding() {
+        let wire = proto::ActorSettings::from(&ActorSettings::default());
+        let bytes = wire.encode_to_vec();
+        let back = proto::ActorSettings::decode(bytes.as_slice()).unwrap();
+        assert_eq!(back, wire);
+        let info =
+            proto::RunInfo { protocol_version: 2, run_id: "r".into(), settings: Some(wire), assigned_actor_id: None };
+        let decoded = proto::validate::run_info(&info.encode_to_vec()).unwrap();
+        assert_eq!(decoded, info);
+    }
+}

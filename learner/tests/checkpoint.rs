@@ -175,3 +175,60 @@ fn the_replay_snapshot_round_trips() {
     let message = checkpoint::load_replay(&loaded).unwrap_err().to_string();
     assert!(message.contains("replay.bin"), "{message}");
 }
+
+fn batch_with(value: f64) -> Batch {
+    Batch {
+        observations: Tensor::full([16, 40], value, (Kind::Float, tch::Device::Cpu)),
+        actions: Tensor::zeros([16], (Kind::Int64, tch::Device::Cpu)),
+        returns: Tensor::full([16], value, (Kind::Float, tch::Device::Cpu)),
+        next_observations: Tensor::full([16, 40], value, (Kind::Float, tch::Device::Cpu)),
+        discounts: Tensor::full([16], 0.99, (Kind::Float, tch::Device::Cpu)),
+        weights: None,
+    }
+}
+
+#[test]
+fn a_non_finite_update_is_skipped_and_leaves_every_weight_as_it_was() {
+    let mut dqn = trained(4);
+    let (online, target, step) = (bits(dqn.online.flat()), bits(dqn.target.flat()), dqn.optimizer.step);
+    // Finite inputs near f32::MAX overflow the loss: the update must not happen.
+    for value in [3e38, f64::NAN, f64::INFINITY] {
+        let stats = dqn.update(&batch_with(value));
+        assert!(!stats.applied, "an update with inputs {value} was applied: {stats:?}");
+    }
+    assert_eq!(bits(dqn.online.flat()), online);
+    assert_eq!(bits(dqn.target.flat()), target);
+    assert_eq!(dqn.optimizer.step, step);
+    assert!(dqn.online.all_finite());
+    // A sane batch still trains.
+    assert!(dqn.update(&batch_with(0.5)).applied);
+    assert_ne!(bits(dqn.online.flat()), online);
+}
+
+#[test]
+fn non_finite_weights_are_never_saved_and_older_checkpoints_stay() {
+    let dir = tempfile::tempdir().unwrap();
+    let mut dqn = trained(5);
+    let config = serde_json::json!({});
+    checkpoint::save(dir.path(), &dqn, "run-n", &progress(1), &config, None, 1).unwrap();
+    let _ = dqn.online.flat_mut().get(0).fill_(f64::NAN);
+    let error = checkpoint::save(dir.path(), &dqn, "run-n", &progress(2), &config, None, 1).unwrap_err();
+    assert!(matches!(error, CheckpointError::NonFinite(_, "online")), "{error}");
+    // keep = 1, yet the good checkpoint was not pruned for the refused one.
+    let kept = checkpoint::list(dir.path()).unwrap();
+    assert_eq!(kept.len(), 1);
+    assert_eq!(checkpoint::load(dir.path()).unwrap().meta.progress.updates, 1);
+}
+
+#[test]
+fn a_meta_json_declaring_an_enormous_network_is_refused_before_allocating() {
+    let dir = tempfile::tempdir().unwrap();
+    let path =
+        checkpoint::save(dir.path(), &trained(6), "run-h", &progress(1), &serde_json::json!({}), None, 1).unwrap();
+    let meta_path = path.join("meta.json");
+    let mut meta: serde_json::Value = serde_json::from_slice(&fs::read(&meta_path).unwrap()).unwrap();
+    meta["network"]["hidden"] = serde_json::json!(vec![65_536; 1000]);
+    fs::write(&meta_path, serde_json::to_vec(&meta).unwrap()).unwrap();
+    let error = checkpoint::load(&path).unwrap_err().to_string();
+    assert!(error.contains("meta.json") && error.contains("hidden layers"), "{error}");
+}

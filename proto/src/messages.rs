@@ -185,11 +185,12 @@ pub struct EpsilonDecay {
     pub min: f64,
 }
 
+/// How actors explore; the tags are [`ActorSettings`]' field numbers.
 #[derive(Clone, PartialEq, prost::Oneof)]
 pub enum Exploration {
-    #[prost(message, tag = "1")]
+    #[prost(message, tag = "4")]
     Ladder(EpsilonLadder),
-    #[prost(message, tag = "2")]
+    #[prost(message, tag = "5")]
     Decay(EpsilonDecay),
 }
 

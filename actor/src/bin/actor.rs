@@ -58,6 +58,7 @@ fn parse_id(text: &str) -> Result<ActorId, String> {
 fn main() -> anyhow::Result<()> {
     crawler_actor::cli::init_logging();
     let args = Args::parse();
+    crawler_actor::cli::serialize_tls_link_io(&args.connect);
     let mut zenoh_overrides = Vec::new();
     if let Some(tls) = args.tls.files().map_err(anyhow::Error::msg)? {
         check_tls_endpoints(&args.connect, "--connect").map_err(anyhow::Error::msg)?;

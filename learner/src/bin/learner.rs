@@ -97,6 +97,8 @@ fn main() -> anyhow::Result<()> {
             run_dir.display()
         );
     }
+    // Before the async runtime or libtorch start any thread.
+    crawler_actor::cli::serialize_tls_link_io(&config.learner.listen);
     let mut zenoh_overrides = Vec::new();
     let mut identity = access_control::Identity::None;
     if let Some(tls) = args.tls.files().map_err(anyhow::Error::msg)? {

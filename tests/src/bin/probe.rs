@@ -93,10 +93,20 @@ enum Attack {
     Impersonate,
 }
 
-#[tokio::main(flavor = "multi_thread", worker_threads = 1)]
-async fn main() -> anyhow::Result<()> {
+fn main() -> anyhow::Result<()> {
     crawler_actor::cli::init_logging();
     let args = Args::parse();
+    // As the actor does, before any thread exists.
+    crawler_actor::cli::serialize_tls_link_io(std::slice::from_ref(&args.connect));
+    let runtime = tokio::runtime::Builder::new_multi_thread()
+        .worker_threads(1)
+        .enable_all()
+        .build()
+        .context("starting the async runtime")?;
+    runtime.block_on(run(args))
+}
+
+async fn run(args: Args) -> anyhow::Result<()> {
     let mut overrides = Vec::new();
     if let Some(tls) = args.tls.files().map_err(anyhow::Error::msg)? {
         overrides.extend(tls.zenoh_settings(TlsSide::Connect));
