@@ -67,6 +67,18 @@ fn bad_configs_are_refused_with_the_key_or_path_named() {
     let message = run(&["--config", "configs/smoke.toml", "--run", "lever-0.1", "--actors", "2"]);
     assert!(message.contains("`lever-0.1`") && message.contains("A-Z a-z 0-9 _ -"), "{message}");
     assert!(!message.contains("started local actors"), "{message}");
+    // NaN anywhere, by key; a replay this machine cannot hold, before any actor starts.
+    for key in ["dqn.adam_eps", "rate.error_buffer", "learner.max_seconds"] {
+        let message = run(&["--config", "configs/smoke.toml", "--set", &format!("{key}=nan"), "--actors", "0"]);
+        assert!(message.contains(key) && message.contains("finite"), "{message}");
+    }
+    let message = run(&["--config", "configs/smoke.toml", "--set", "replay.capacity=4000000000", "--actors", "2"]);
+    assert!(message.contains("replay.capacity") && message.contains("MiB"), "{message}");
+    assert!(!message.contains("started local actors"), "{message}");
+    // Plain TCP beyond loopback needs an explicit opt-in, and the refusal says why.
+    let listen = "learner.listen=[\"tcp/0.0.0.0:7447\"]";
+    let message = run(&["--config", "configs/smoke.toml", "--set", listen, "--actors", "0"]);
+    assert!(message.contains("--allow-plain-remote") && message.contains("unauthenticated"), "{message}");
 }
 
 #[test]

@@ -72,7 +72,6 @@ fn a_learner_killed_with_sigkill_resumes_the_run_and_running_actors_reconnect() 
     }
     signal(learner.child.id(), "KILL");
     let _ = learner.child.wait();
-    let before = crawler_tests::read_status(&learner.status_path()).unwrap();
     let saved = checkpoint::load(&checkpoints).unwrap();
     assert!(saved.meta.progress.updates >= 300, "{:?}", saved.meta.progress);
     assert!(checkpoint::load_replay(&saved).unwrap().is_none(), "periodic checkpoints hold no replay");
@@ -87,9 +86,9 @@ fn a_learner_killed_with_sigkill_resumes_the_run_and_running_actors_reconnect() 
     let restarted = Instant::now();
     // Resumed with other publishing settings, which the old version skip (computed from the
     // config) got wrong: versions are ordered by (learner session, version) now, so this
-    // learner's first publish is newer than anything the killed one sent, whatever number it
-    // carries. With weights_every 100 000 it publishes only once, at start.
-    let overrides = ["--set", "learner.weights_every=100000", "--set", "learner.checkpoint_every=1000"];
+    // learner's publishes are newer than anything the killed one sent, whatever number they
+    // carry. With weights_every 1 000 its numbers stay below the actors' for a while.
+    let overrides = ["--set", "learner.weights_every=1000", "--set", "learner.checkpoint_every=1000"];
     let mut resumed = Learner::resume_on(port, runs.path(), "kill-learner", 0, &overrides);
     let status = resumed.wait_for(Duration::from_secs(60), "both actors reconnected and sending", |s| {
         s["connected_actors"] == serde_json::json!([0, 1])
@@ -105,18 +104,19 @@ fn a_learner_killed_with_sigkill_resumes_the_run_and_running_actors_reconnect() 
     assert!(u64_at(&status, "/updates") >= progress.updates);
     assert!(u64_at(&status, "/env_steps") >= progress.env_steps);
     let resumed_version = progress.weights_version + 1;
-    assert_eq!(u64_at(&status, "/weights_version"), resumed_version, "{status:#}");
-    for (id, steps) in actor_steps.iter().enumerate() {
-        let held = last_status_weights(&actors[id].log_text());
-        assert!(
-            held > resumed_version,
-            "actor {id} held v{held} (at {steps} steps), not newer than v{resumed_version}"
-        );
+    assert!(u64_at(&status, "/weights_version") >= resumed_version, "{status:#}");
+    let held: Vec<u64> = actors.iter().map(|a| last_status_weights(&a.log_text())).collect();
+    for (id, held) in held.iter().enumerate() {
+        assert!(*held > resumed_version, "actor {id} held v{held}, not newer than v{resumed_version}");
     }
-    assert!(u64_at(&before, "/weights_version") > resumed_version, "{before:#}");
-    resumed.wait_for(Duration::from_secs(60), "the surviving actors acting on the resumed learner's weights", |s| {
-        (0..2).all(|id| u64_at(s, &format!("/actors/{id}/weights_version")) == resumed_version)
-    });
+    let followed =
+        resumed.wait_for(Duration::from_secs(60), "the surviving actors on the resumed learner's weights", |s| {
+            (0..2).all(|id| {
+                let version = u64_at(s, &format!("/actors/{id}/weights_version"));
+                (resumed_version..held[id]).contains(&version) && version <= u64_at(s, "/weights_version")
+            })
+        });
+    eprintln!("actors held {held:?}; they took the resumed learner's lower-numbered weights: {}", followed["actors"]);
     let trained = resumed.wait_for(Duration::from_secs(60), "training after the warm-up", |s| {
         u64_at(s, "/updates") > progress.updates + 20
     });
