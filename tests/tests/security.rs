@@ -16,11 +16,11 @@ use crawler_tests::{Actor, FORGED_VERSION, Learner, binary, free_port, repo_root
 
 const SMOKE: &str = "configs/smoke.toml";
 
-/// TLS material for a deployment: `make-tls.sh DIR localhost 2`.
-fn make_tls(dir: &Path) -> PathBuf {
+/// TLS material for a deployment: `make-tls.sh DIR localhost ACTORS`.
+fn make_tls(dir: &Path, actors: u32) -> PathBuf {
     let status = Command::new("bash")
         .arg(repo_root().join("deploy/make-tls.sh"))
-        .args([dir.to_str().unwrap(), "localhost", "2"])
+        .args([dir.to_str().unwrap(), "localhost", &actors.to_string()])
         .status()
         .unwrap();
     assert!(status.success(), "make-tls.sh failed");
@@ -127,9 +127,9 @@ fn key_is(line: &serde_json::Value, key: &str) -> bool {
 #[test]
 fn only_actors_with_a_certificate_from_the_runs_ca_connect() {
     let dir = tempfile::tempdir().unwrap();
-    let tls = make_tls(&dir.path().join("tls"));
+    let tls = make_tls(&dir.path().join("tls"), 2);
     // A second CA: its certificates are well-formed but signed by the wrong authority.
-    let rogue = make_tls(&dir.path().join("rogue"));
+    let rogue = make_tls(&dir.path().join("rogue"), 2);
     let runs = dir.path().join("runs");
     let port = free_port();
     let run = "tls-connect";
@@ -164,7 +164,7 @@ fn only_actors_with_a_certificate_from_the_runs_ca_connect() {
 #[test]
 fn an_authenticated_actor_cannot_forge_weights_or_put_outside_its_rights() {
     let dir = tempfile::tempdir().unwrap();
-    let tls = make_tls(&dir.path().join("tls"));
+    let tls = make_tls(&dir.path().join("tls"), 2);
     let runs = dir.path().join("runs");
     let port = free_port();
     let run = "tls-forge";
@@ -440,13 +440,7 @@ fn attacks_over_plain_tcp_leave_training_intact() {
 #[test]
 fn attacks_by_a_certified_actor_leave_training_intact() {
     let dir = tempfile::tempdir().unwrap();
-    let tls = dir.path().join("tls");
-    let status = Command::new("bash")
-        .arg(repo_root().join("deploy/make-tls.sh"))
-        .args([tls.to_str().unwrap(), "localhost", "3"])
-        .status()
-        .unwrap();
-    assert!(status.success(), "make-tls.sh failed");
+    let tls = make_tls(&dir.path().join("tls"), 3);
     let runs = dir.path().join("runs");
     let port = free_port();
     let run = "attacked-tls";
