@@ -34,6 +34,7 @@ done
 ldd "$CARGO_TARGET_DIR/release/learner" | awk '$3 ~ /^\// && $3 !~ /^\/(usr\/)?lib/ {print $3}' |
     while read -r library; do cp -L "$library" "$context/lib/"; done
 cp -r configs "$context/configs"
+cp deploy/learner-entrypoint.sh "$context/"
 
 for image in actor learner; do
     docker build --quiet --build-arg BASE_IMAGE="$BASE_IMAGE" -f "deploy/Dockerfile.$image" \
