@@ -137,7 +137,8 @@ impl ActorSettings {
 fn pair(values: &[f32], field: &'static str) -> Result<[f32; 2], SettingsError> {
     <[f32; 2]>::try_from(values).map_err(|_| SettingsError::Field {
         field,
-        value: format!("{values:?}"),
+        // Quoted in part: the list came from the network and may be long.
+        value: proto::validate::quoted_prefix(&format!("{values:?}")),
         allowed: "exactly two values [low, high]",
     })
 }

@@ -20,7 +20,7 @@ pub const ROOT: &str = "crawler";
 pub fn check_run_id(run: &str) -> Result<(), ProtoError> {
     let ok =
         !run.is_empty() && run.len() <= 64 && run.chars().all(|c| c.is_ascii_alphanumeric() || c == '-' || c == '_');
-    if ok { Ok(()) } else { Err(ProtoError::BadRunId(run.to_string())) }
+    if ok { Ok(()) } else { Err(ProtoError::BadRunId(crate::validate::quoted_prefix(run))) }
 }
 
 pub fn transitions(run: &str, actor: u32) -> String {

@@ -79,13 +79,26 @@ pub fn decode<M: Message + Default>(bytes: &[u8], message: &'static str) -> Resu
     M::decode(bytes).map_err(|e| ProtoError::Decode { message, reason: e.to_string() })
 }
 
+/// Longest piece of a received string an error quotes: errors reach logs, and a run id
+/// from the network may be megabytes long.
+pub const MAX_QUOTED_CHARS: usize = 80;
+
+/// The first [`MAX_QUOTED_CHARS`] characters of `text`, with `…` when it was longer.
+pub fn quoted_prefix(text: &str) -> String {
+    let mut prefix: String = text.chars().take(MAX_QUOTED_CHARS).collect();
+    if prefix.len() < text.len() {
+        prefix.push('…');
+    }
+    prefix
+}
+
 /// Checks the protocol version and run id every message carries.
 pub fn check_envelope(version: u32, run_id: &str, expected_run: &str) -> Result<(), ProtoError> {
     if version != PROTOCOL_VERSION {
         return Err(ProtoError::Version { got: version, expected: PROTOCOL_VERSION });
     }
     if run_id != expected_run {
-        return Err(ProtoError::RunId { got: run_id.to_string(), expected: expected_run.to_string() });
+        return Err(ProtoError::RunId { got: quoted_prefix(run_id), expected: expected_run.to_string() });
     }
     Ok(())
 }
@@ -96,7 +109,7 @@ pub fn check_sender(key: &str, payload_actor: u32) -> Result<(), ProtoError> {
     if crate::keys::trailing_id(key) == Some(payload_actor) {
         Ok(())
     } else {
-        Err(ProtoError::KeyMismatch { key: key.chars().take(200).collect(), payload: payload_actor })
+        Err(ProtoError::KeyMismatch { key: quoted_prefix(key), payload: payload_actor })
     }
 }
 
@@ -585,6 +598,15 @@ mod tests {
         assert!(episode_stats(&episode(0.9, 0.0).encode_to_vec(), "r").is_ok());
         assert_eq!(episode_stats(&episode(3e38, 0.0).encode_to_vec(), "r").unwrap_err().kind(), "out_of_range");
         assert_eq!(episode_stats(&episode(0.5, f64::NAN).encode_to_vec(), "r").unwrap_err().kind(), "non_finite");
+    }
+
+    #[test]
+    fn errors_quote_at_most_a_prefix_of_what_arrived() {
+        let huge = "x".repeat(1 << 20);
+        let error = check_envelope(PROTOCOL_VERSION, &huge, "r").unwrap_err().to_string();
+        assert!(error.len() < 200, "{} bytes", error.len());
+        let error = crate::keys::check_run_id(&huge).unwrap_err().to_string();
+        assert!(error.len() < 200, "{} bytes", error.len());
     }
 
     #[test]
