@@ -715,27 +715,28 @@ fn train(
             if replay.sample(batch_size, config.dqn.gamma, beta, &mut rng, &mut sample).is_ok() {
                 let stats = dqn.update(&to_batch(&sample, batch_size, config.replay.prioritized.is_some()));
                 rate.record_sample(batch_size);
-                if !stats.applied {
+                if stats.applied {
+                    replay.update_priorities(&sample.keys, &stats.td_errors);
+                    progress.updates += 1;
+                    last_loss = (stats.loss, stats.mean_q);
+                    losses.add(stats.loss, stats.mean_q);
+                    if progress.updates.is_multiple_of(config.learner.weights_every) {
+                        publish(&dqn, &mut progress);
+                    }
+                    let every = config.learner.checkpoint_every;
+                    if every > 0 && progress.updates.is_multiple_of(every) {
+                        // A failed periodic checkpoint (disk full, say) is logged; training goes
+                        // on and the older checkpoints stay. The final one's error is returned.
+                        match save_checkpoint(&dqn, &mut progress, None) {
+                            Ok(path) => last_checkpoint = Some(path),
+                            Err(e) => warn!("periodic checkpoint failed: {e}"),
+                        }
+                    }
+                } else {
+                    // The weights were left as they were; status and metrics still go out below.
                     let skipped = shared.skipped_updates.fetch_add(1, Ordering::Relaxed) + 1;
                     if skipped <= 3 || skipped.is_multiple_of(1000) {
                         warn!(skipped, loss = stats.loss, grad_norm = stats.grad_norm, "skipped a non-finite update");
-                    }
-                    continue;
-                }
-                replay.update_priorities(&sample.keys, &stats.td_errors);
-                progress.updates += 1;
-                last_loss = (stats.loss, stats.mean_q);
-                losses.add(stats.loss, stats.mean_q);
-                if progress.updates.is_multiple_of(config.learner.weights_every) {
-                    publish(&dqn, &mut progress);
-                }
-                let every = config.learner.checkpoint_every;
-                if every > 0 && progress.updates.is_multiple_of(every) {
-                    // A failed periodic checkpoint (disk full, say) is logged; training goes
-                    // on and the older checkpoints stay. The final one's error is returned.
-                    match save_checkpoint(&dqn, &mut progress, None) {
-                        Ok(path) => last_checkpoint = Some(path),
-                        Err(e) => warn!("periodic checkpoint failed: {e}"),
                     }
                 }
             }
