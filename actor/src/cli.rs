@@ -28,19 +28,22 @@ pub const SERIAL_TLS_RUNTIME: &str = "(rx: (handover: tx))";
 /// variable when it starts its runtimes, and changing the environment is only sound while
 /// the process has a single thread.
 pub fn serialize_tls_link_io(endpoints: &[String]) {
-    let tls = endpoints.iter().any(|e| e.starts_with("tls/"));
-    if tls && std::env::var_os(zenoh_runtime_variable()).is_none() {
+    if endpoints.iter().any(|e| is_tls_endpoint(e)) && std::env::var_os(ZENOH_RUNTIME_VARIABLE).is_none() {
         #[allow(unsafe_code)]
         // SAFETY: called at the start of `main`, while the process has one thread, so nothing
         // can read the environment concurrently.
         unsafe {
-            std::env::set_var(zenoh_runtime_variable(), SERIAL_TLS_RUNTIME);
+            std::env::set_var(ZENOH_RUNTIME_VARIABLE, SERIAL_TLS_RUNTIME);
         }
     }
 }
 
-fn zenoh_runtime_variable() -> &'static str {
-    "ZENOH_RUNTIME"
+/// The environment variable zenoh reads its runtime settings from.
+const ZENOH_RUNTIME_VARIABLE: &str = "ZENOH_RUNTIME";
+
+/// Whether a zenoh endpoint is a TLS one.
+fn is_tls_endpoint(endpoint: &str) -> bool {
+    endpoint.starts_with("tls/")
 }
 
 /// Splits `--zenoh KEY=JSON5` arguments into pairs; the error names the bad argument.
@@ -149,7 +152,7 @@ impl TlsFiles {
 /// Every endpoint must be a `tls/` one when TLS material is given: a `tcp/` endpoint beside
 /// it would carry the same traffic unauthenticated.
 pub fn check_tls_endpoints(endpoints: &[String], flag: &str) -> Result<(), String> {
-    match endpoints.iter().find(|e| !e.starts_with("tls/")) {
+    match endpoints.iter().find(|e| !is_tls_endpoint(e)) {
         Some(plain) => {
             Err(format!("{flag} {plain:?} is not a tls/ endpoint, but TLS material was given; use e.g. tls/HOST:7447"))
         }

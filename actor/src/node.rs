@@ -86,10 +86,17 @@ pub fn serde_json_list(items: &[String]) -> String {
 /// Weights the simulation can act with.
 #[derive(Debug)]
 struct LoadedPolicy {
-    /// (learner session, version): the order in which weights supersede one another.
-    order: (u64, u64),
+    /// The learner process that published these; see [`LoadedPolicy::order`].
+    session: u64,
     version: u64,
     policy: MlpPolicy,
+}
+
+impl LoadedPolicy {
+    /// (learner session, version): the order in which weights supersede one another.
+    fn order(&self) -> (u64, u64) {
+        (self.session, self.version)
+    }
 }
 
 enum Outgoing {
@@ -139,9 +146,9 @@ pub async fn run(mut options: ActorOptions, stop: Arc<AtomicBool>) -> Result<(),
         let expected = spec.clone();
         move |bytes: &[u8]| match load_weights(bytes, &run_id, &expected) {
             Ok(loaded) => {
-                let newer = policy_tx.borrow().as_ref().is_none_or(|p| loaded.order > p.order);
+                let newer = policy_tx.borrow().as_ref().is_none_or(|p| loaded.order() > p.order());
                 if newer {
-                    debug!(session = loaded.order.0, version = loaded.version, "new weights");
+                    debug!(session = loaded.session, version = loaded.version, "new weights");
                     policy_tx.send_replace(Some(Arc::new(loaded)));
                 }
             }
@@ -348,7 +355,7 @@ fn load_weights(bytes: &[u8], run_id: &str, expected: &NetworkSpec) -> Result<Lo
     }
     let policy =
         MlpPolicy::from_safetensors(&weights.safetensors, &spec).map_err(|e| NodeError::Weights(e.to_string()))?;
-    Ok(LoadedPolicy { order: weights.order(), version: weights.version, policy })
+    Ok(LoadedPolicy { session: weights.learner_session, version: weights.version, policy })
 }
 
 /// The simulation loop: act, step, batch transitions, report episodes.

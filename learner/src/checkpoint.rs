@@ -230,9 +230,7 @@ fn verify_saved(path: &Path) -> Result<(), CheckpointError> {
         return Err(corrupt(path, "non-finite weights"));
     }
     if let Some(digest) = checkpoint.meta.files.get(REPLAY) {
-        let replay = path.join(REPLAY);
-        let bytes = fs::read(&replay).map_err(io("read", &replay))?;
-        verify(&replay, &bytes, digest)?;
+        read_verified(&path.join(REPLAY), digest)?;
     }
     Ok(())
 }
@@ -337,11 +335,8 @@ pub fn load(path: &Path) -> Result<Checkpoint, CheckpointError> {
     }
     meta.network.validate().map_err(|e| corrupt(&meta_path, e))?;
     let read = |file: &str| -> Result<Vec<u8>, CheckpointError> {
-        let file_path = path.join(file);
         let digest = meta.files.get(file).ok_or_else(|| corrupt(&meta_path, format!("no entry for {file}")))?;
-        let bytes = fs::read(&file_path).map_err(io("read", &file_path))?;
-        verify(&file_path, &bytes, digest)?;
-        Ok(bytes)
+        read_verified(&path.join(file), digest)
     };
     let n = meta.network.num_params();
     let online = decode_weights(&read(WEIGHTS)?, &meta.network, &path.join(WEIGHTS))?;
@@ -359,6 +354,13 @@ pub fn load(path: &Path) -> Result<Checkpoint, CheckpointError> {
     };
     let (exp_avg, exp_avg_sq) = (flat("exp_avg")?, flat("exp_avg_sq")?);
     Ok(Checkpoint { path, meta, online, target, exp_avg, exp_avg_sq })
+}
+
+/// A checkpoint file's bytes, checked against its size and checksum.
+fn read_verified(path: &Path, digest: &FileDigest) -> Result<Vec<u8>, CheckpointError> {
+    let bytes = fs::read(path).map_err(io("read", path))?;
+    verify(path, &bytes, digest)?;
+    Ok(bytes)
 }
 
 fn verify(path: &Path, bytes: &[u8], digest: &FileDigest) -> Result<(), CheckpointError> {
@@ -397,8 +399,7 @@ pub fn decode_weights(bytes: &[u8], spec: &NetworkSpec, path: &Path) -> Result<V
 pub fn load_replay(checkpoint: &Checkpoint) -> Result<Option<Replay>, CheckpointError> {
     let Some(digest) = checkpoint.meta.files.get(REPLAY) else { return Ok(None) };
     let path = checkpoint.path.join(REPLAY);
-    let bytes = fs::read(&path).map_err(io("read", &path))?;
-    verify(&path, &bytes, digest)?;
+    let bytes = read_verified(&path, digest)?;
     let reader = BufReader::new(bytes.as_slice());
     let replay: Replay = bincode::serde::decode_from_std_read(&mut { reader }, bincode::config::standard())
         .map_err(|e| corrupt(&path, e))?;

@@ -118,11 +118,15 @@ impl LiveNodes {
         }
     }
 
-    fn holds(&self, kind: NodeKind, id: u32) -> bool {
+    fn get(&self, kind: NodeKind) -> &BTreeSet<u32> {
         match kind {
-            NodeKind::Actor => self.actors.contains(&id),
-            NodeKind::Evaluator => self.evaluators.contains(&id),
+            NodeKind::Actor => &self.actors,
+            NodeKind::Evaluator => &self.evaluators,
         }
+    }
+
+    fn holds(&self, kind: NodeKind, id: u32) -> bool {
+        self.get(kind).contains(&id)
     }
 
     fn admit(&mut self, kind: NodeKind, id: u32) -> Admission {
@@ -445,14 +449,14 @@ impl FromNode for proto::TransitionBatch {
 }
 
 /// The checks every message from a node passes after decoding: it is put under its own id,
-/// and that id holds a liveliness token.
-fn check_sender(shared: &Shared, key: &str, message: &impl FromNode) -> Result<(), proto::ProtoError> {
+/// and that id holds a liveliness token. Returns the message when it passes.
+fn from_live_sender<M: FromNode>(shared: &Shared, key: &str, message: M) -> Result<M, proto::ProtoError> {
     let (kind, id) = message.node();
     proto::validate::check_sender(key, id)?;
-    if lock(&shared.live).holds(kind, id) { Ok(()) } else { Err(proto::ProtoError::NotLive { actor: id }) }
+    if lock(&shared.live).holds(kind, id) { Ok(message) } else { Err(proto::ProtoError::NotLive { actor: id }) }
 }
 
-/// A subscriber callback that validates each message with `decode` and [`check_sender`] and
+/// A subscriber callback that validates each message with `decode` and [`from_live_sender`] and
 /// hands valid ones to `record`; rejections are counted and logged with rate limiting.
 fn validated<M: FromNode + 'static>(
     shared: &Arc<Shared>,
@@ -464,7 +468,7 @@ fn validated<M: FromNode + 'static>(
     let run_id = run_id.to_string();
     move |sample| {
         let checked = decode(&sample.payload().to_bytes(), &run_id)
-            .and_then(|message| check_sender(&shared, sample.key_expr().as_str(), &message).map(|()| message));
+            .and_then(|message| from_live_sender(&shared, sample.key_expr().as_str(), message));
         match checked {
             Ok(message) => record(&shared, message),
             Err(e) => count_rejection(&shared, &e),
@@ -559,7 +563,7 @@ fn ingest_callback(
 ) -> impl Fn(zenoh::sample::Sample) + Send + Sync + 'static {
     move |sample| {
         let batch = match proto::validate::transition_batch(&sample.payload().to_bytes(), &limits)
-            .and_then(|batch| check_sender(&shared, sample.key_expr().as_str(), &batch).map(|()| batch))
+            .and_then(|batch| from_live_sender(&shared, sample.key_expr().as_str(), batch))
         {
             Ok(batch) => batch,
             Err(e) => return count_rejection(&shared, &e),

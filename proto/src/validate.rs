@@ -132,20 +132,14 @@ pub struct TransitionLimits {
 /// Largest priority a batch may propose for prioritised replay.
 pub const MAX_PRIORITY: f32 = 1e6;
 
+/// Every value inside `[low, high]`.
 fn within(field: &'static str, values: &[f32], low: f32, high: f32) -> Result<(), ProtoError> {
-    match values.iter().position(|v| !(low..=high).contains(v)) {
-        Some(index) => Err(ProtoError::OutOfRange {
-            field,
-            index,
-            value: f64::from(values[index]),
-            low: f64::from(low),
-            high: f64::from(high),
-        }),
-        None => Ok(()),
-    }
+    within_ranges(field, values, &[[low, high]])
 }
 
-fn observations_within(field: &'static str, values: &[f32], ranges: &[[f32; 2]]) -> Result<(), ProtoError> {
+/// Value i inside range `i mod ranges.len()` (one range per observation index); no ranges:
+/// no bound.
+fn within_ranges(field: &'static str, values: &[f32], ranges: &[[f32; 2]]) -> Result<(), ProtoError> {
     if ranges.is_empty() {
         return Ok(());
     }
@@ -211,8 +205,8 @@ pub fn transition_batch(bytes: &[u8], limits: &TransitionLimits) -> Result<Trans
         return Err(ProtoError::EnvId { env, index, envs_per_actor: limits.envs_per_actor });
     }
     // Finite is not enough: values near f32::MAX square to infinity in the loss.
-    observations_within("observations", &batch.observations, &limits.observation_range)?;
-    observations_within("next_observations", &batch.next_observations, &limits.observation_range)?;
+    within_ranges("observations", &batch.observations, &limits.observation_range)?;
+    within_ranges("next_observations", &batch.next_observations, &limits.observation_range)?;
     within("rewards", &batch.rewards, -limits.max_abs_reward, limits.max_abs_reward)?;
     Ok(batch)
 }

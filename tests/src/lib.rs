@@ -296,8 +296,18 @@ pub fn u64_at(value: &serde_json::Value, pointer: &str) -> u64 {
 
 /// Resident set size of process `pid` in MiB, from /proc.
 pub fn rss_mib(pid: u32) -> Option<f64> {
+    proc_status_mib(pid, "VmRSS")
+}
+
+/// Peak resident set size ("high water mark") of process `pid` in MiB, from /proc.
+pub fn peak_rss_mib(pid: u32) -> Option<f64> {
+    proc_status_mib(pid, "VmHWM")
+}
+
+/// A `kB` field of `/proc/<pid>/status`, in MiB.
+fn proc_status_mib(pid: u32, field: &str) -> Option<f64> {
     let status = std::fs::read_to_string(format!("/proc/{pid}/status")).ok()?;
-    let line = status.lines().find(|l| l.starts_with("VmRSS:"))?;
+    let line = status.lines().find(|l| l.strip_prefix(field).is_some_and(|rest| rest.starts_with(':')))?;
     let kib: f64 = line.split_whitespace().nth(1)?.parse().ok()?;
     Some(kib / 1024.0)
 }

@@ -48,10 +48,13 @@ fn start_learner(port: u16, runs: &Path, run: &str, tls: &Path) -> Learner {
 }
 
 fn start_actor(port: u16, id: u32, run: &str, tls: Vec<String>, log_dir: &Path) -> Actor {
-    let connect = format!("tls/localhost:{port}");
-    let mut args = vec!["--connect".to_string(), connect, "--id".into(), id.to_string(), "--run".into(), run.into()];
-    args.extend(tls);
-    let args: Vec<&str> = args.iter().map(String::as_str).collect();
+    start_actor_at(&format!("tls/localhost:{port}"), &id.to_string(), run, &tls, log_dir)
+}
+
+/// `actor --connect ENDPOINT --id ID --run RUN` plus TLS flags (`ID` may be `auto`).
+fn start_actor_at(endpoint: &str, id: &str, run: &str, tls: &[String], log_dir: &Path) -> Actor {
+    let mut args: Vec<&str> = vec!["--connect", endpoint, "--id", id, "--run", run];
+    args.extend(tls.iter().map(String::as_str));
     Actor::start_args(&args, log_dir)
 }
 
@@ -243,15 +246,22 @@ struct Link {
     actor_tls: Vec<String>,
 }
 
+impl Link {
+    /// `probe attack KIND` over this link.
+    fn probe_attack(&self, run: &str, kind: &str, seconds: f64) -> Command {
+        let mut command = Command::new(binary("probe"));
+        command
+            .args(["--connect", &self.endpoint])
+            .args(&self.actor_tls)
+            .args(["attack", kind, "--run", run, "--seconds", &seconds.to_string()])
+            .stderr(Stdio::inherit());
+        command
+    }
+}
+
 /// `probe attack KIND`; returns the JSON it printed.
 fn attack(link: &Link, run: &str, kind: &str, seconds: f64) -> serde_json::Value {
-    let output = Command::new(binary("probe"))
-        .args(["--connect", &link.endpoint])
-        .args(&link.actor_tls)
-        .args(["attack", kind, "--run", run, "--seconds", &seconds.to_string()])
-        .stderr(Stdio::inherit())
-        .output()
-        .unwrap();
+    let output = link.probe_attack(run, kind, seconds).output().unwrap();
     assert!(output.status.success(), "probe attack {kind} failed");
     let report: serde_json::Value =
         serde_json::from_slice(output.stdout.split(|b| *b == b'\n').next().unwrap()).unwrap();
@@ -267,14 +277,7 @@ fn attack_in_background(
     kind: &str,
     seconds: f64,
 ) -> (Child, std::sync::mpsc::Receiver<String>) {
-    let mut child = Command::new(binary("probe"))
-        .args(["--connect", &link.endpoint])
-        .args(&link.actor_tls)
-        .args(["attack", kind, "--run", run, "--seconds", &seconds.to_string()])
-        .stdout(Stdio::piped())
-        .stderr(Stdio::inherit())
-        .spawn()
-        .unwrap();
+    let mut child = link.probe_attack(run, kind, seconds).stdout(Stdio::piped()).spawn().unwrap();
     let stdout = child.stdout.take().unwrap();
     let (tx, rx) = std::sync::mpsc::channel();
     std::thread::spawn(move || {
@@ -283,12 +286,6 @@ fn attack_in_background(
         }
     });
     (child, rx)
-}
-
-fn vm_hwm_mib(pid: u32) -> f64 {
-    let status = std::fs::read_to_string(format!("/proc/{pid}/status")).unwrap();
-    let line = status.lines().find(|l| l.starts_with("VmHWM:")).unwrap();
-    line.split_whitespace().nth(1).unwrap().parse::<f64>().unwrap() / 1024.0
 }
 
 fn rejected(status: &serde_json::Value, kind: &str) -> u64 {
@@ -311,7 +308,7 @@ fn attack_suite(learner: &mut Learner, link: &Link, run: &str, log_dir: &Path) {
         u64_at(s, "/updates") > 50 && actors_follow_the_learner(s, 2)
     });
     let pid = learner.child.id();
-    let hwm_before = vm_hwm_mib(pid);
+    let hwm_before = crawler_tests::peak_rss_mib(pid).unwrap();
 
     // Steering the actors: forged weights and a forged stop reach nobody (the ACL denies
     // remote puts on both keys).
@@ -356,11 +353,7 @@ fn attack_suite(learner: &mut Learner, link: &Link, run: &str, log_dir: &Path) {
     // and trains (with the forged 3 action levels it could not use the learner's weights).
     let (mut forged_info, _) = attack_in_background(link, run, "forged-info", 15.0);
     std::thread::sleep(Duration::from_secs(2));
-    let mut args =
-        vec!["--connect".to_string(), link.endpoint.clone(), "--id".into(), "5".into(), "--run".into(), run.into()];
-    args.extend(link.actor_tls.iter().cloned());
-    let args: Vec<&str> = args.iter().map(String::as_str).collect();
-    let mut joiner = Actor::start_args(&args, log_dir);
+    let mut joiner = start_actor_at(&link.endpoint, "5", run, &link.actor_tls, log_dir);
     learner.wait_for(Duration::from_secs(60), "the actor that joined under a forged info to train", |s| {
         u64_at(s, "/actors/5/transitions") > 0
     });
@@ -373,11 +366,7 @@ fn attack_suite(learner: &mut Learner, link: &Link, run: &str, log_dir: &Path) {
     let (mut tokens, lines) = attack_in_background(link, run, "tokens", 30.0);
     let first = lines.recv_timeout(Duration::from_secs(120)).unwrap();
     eprintln!("attack tokens: {first}");
-    let mut args =
-        vec!["--connect".to_string(), link.endpoint.clone(), "--id".into(), "auto".into(), "--run".into(), run.into()];
-    args.extend(link.actor_tls.iter().cloned());
-    let args: Vec<&str> = args.iter().map(String::as_str).collect();
-    let mut auto = Actor::start_args(&args, log_dir);
+    let mut auto = start_actor_at(&link.endpoint, "auto", run, &link.actor_tls, log_dir);
     let joined = auto.wait_for_log(Duration::from_secs(60), "joined run");
     let id = crawler_tests::log_field(&joined, "id").unwrap();
     assert!(id < 2 + 16 + 1, "the auto actor got id {id}: {joined}");
@@ -402,7 +391,7 @@ fn attack_suite(learner: &mut Learner, link: &Link, run: &str, log_dir: &Path) {
     assert!(!after["loss"].is_null() && after["loss"].as_f64().unwrap().is_finite(), "{after:#}");
     let status_bytes = std::fs::metadata(learner.status_path()).unwrap().len();
     assert!(status_bytes < 64 << 10, "status.json grew to {status_bytes} bytes");
-    let hwm_after = vm_hwm_mib(pid);
+    let hwm_after = crawler_tests::peak_rss_mib(pid).unwrap();
     eprintln!("learner VmHWM {hwm_before:.0} MiB before the attacks, {hwm_after:.0} MiB after");
     // Had zenoh buffered the 200 MiB message, the peak would have grown by at least that.
     assert!(hwm_after - hwm_before < 100.0, "learner VmHWM {hwm_before:.0} → {hwm_after:.0} MiB");

@@ -151,6 +151,12 @@ async fn genuine_weights(session: &zenoh::Session, run: &str) -> anyhow::Result<
     }
 }
 
+/// A well-formed Stop for run `run`, as only the learner may send it.
+fn stop_message(run: &str) -> Vec<u8> {
+    proto::Control { protocol_version: PROTOCOL_VERSION, run_id: run.to_string(), command: proto::Command::Stop as i32 }
+        .encode_to_vec()
+}
+
 fn status_report(run: &str, id: u32, epsilon: f64) -> Vec<u8> {
     proto::ActorStatus {
         protocol_version: PROTOCOL_VERSION,
@@ -182,13 +188,8 @@ async fn attack(
             }
         }
         Attack::Stop => {
-            let stop = proto::Control {
-                protocol_version: PROTOCOL_VERSION,
-                run_id: run.to_string(),
-                command: proto::Command::Stop as i32,
-            };
             for _ in 0..15 {
-                put(session, &keys::control(run), stop.encode_to_vec()).await?;
+                put(session, &keys::control(run), stop_message(run)).await?;
                 sent += 1;
                 tokio::time::sleep(Duration::from_millis(100)).await;
             }
@@ -312,7 +313,8 @@ async fn attack(
 }
 
 async fn listen(session: &zenoh::Session, keys: &[String]) -> anyhow::Result<()> {
-    let (tx, rx) = flume_like_channel();
+    // Unbounded, from zenoh's callbacks to the printing loop: a probe never holds the router up.
+    let (tx, rx) = std::sync::mpsc::channel::<zenoh::sample::Sample>();
     let mut subscribers = Vec::new();
     for key in keys {
         let tx = tx.clone();
@@ -345,40 +347,14 @@ async fn listen(session: &zenoh::Session, keys: &[String]) -> anyhow::Result<()>
     Ok(())
 }
 
-/// An unbounded channel from zenoh's callbacks to the printing loop (a probe prints what
-/// arrives; it never holds the router up).
-fn flume_like_channel()
--> (std::sync::mpsc::Sender<zenoh::sample::Sample>, std::sync::mpsc::Receiver<zenoh::sample::Sample>) {
-    std::sync::mpsc::channel()
-}
-
 async fn forge(session: &zenoh::Session, run: &str, id: u32, duration: Duration) -> anyhow::Result<()> {
     // Like an actor, it holds its id's liveliness token (the learner keeps only live ids'
     // messages). The observer's is denied, as are its puts.
     let _token = session.liveliness().declare_token(keys::alive_actor(run, id)).await.map_err(err("token"))?;
     // Genuine weights to tamper with: an actor may query them.
-    let deadline = Instant::now() + Duration::from_secs(30);
-    let genuine = loop {
-        let replies = session
-            .get(keys::weights(run))
-            .timeout(Duration::from_secs(2))
-            .await
-            .map_err(|e| anyhow::anyhow!("querying weights: {e}"))?;
-        if let Ok(reply) = replies.recv_async().await
-            && let Ok(sample) = reply.result()
-        {
-            break proto::validate::weights(&sample.payload().to_bytes(), run)?;
-        }
-        anyhow::ensure!(Instant::now() < deadline, "no weights from the learner within 30 s");
-        tokio::time::sleep(Duration::from_millis(200)).await;
-    };
+    let genuine = genuine_weights(session, run).await?;
     let forged_weights = proto::Weights { version: FORGED_VERSION, ..genuine }.encode_to_vec();
-    let stop = proto::Control {
-        protocol_version: PROTOCOL_VERSION,
-        run_id: run.to_string(),
-        command: proto::Command::Stop as i32,
-    }
-    .encode_to_vec();
+    let stop = stop_message(run);
     let info = proto::RunInfo {
         protocol_version: PROTOCOL_VERSION,
         run_id: run.to_string(),
