@@ -162,6 +162,7 @@ impl From<&EnvConfig> for proto::EnvSettings {
             solver_iterations: env.solver_iterations,
             start_joint1_deg: env.start_joint1_deg.to_vec(),
             start_joint2_deg: env.start_joint2_deg.to_vec(),
+            joint_limit_timeconst: env.joint_limit_timeconst,
         }
     }
 }
@@ -194,6 +195,7 @@ impl TryFrom<&proto::EnvSettings> for EnvConfig {
             solver_iterations: env.solver_iterations,
             start_joint1_deg: pair(&env.start_joint1_deg, "env.start_joint1_deg")?,
             start_joint2_deg: pair(&env.start_joint2_deg, "env.start_joint2_deg")?,
+            joint_limit_timeconst: env.joint_limit_timeconst,
         };
         config.validate()?;
         Ok(config)
@@ -299,9 +301,15 @@ mod wire_tests {
         let bytes = wire.encode_to_vec();
         let back = proto::ActorSettings::decode(bytes.as_slice()).unwrap();
         assert_eq!(back, wire);
-        let info =
-            proto::RunInfo { protocol_version: 2, run_id: "r".into(), settings: Some(wire), assigned_actor_id: None };
+        let info = proto::RunInfo {
+            protocol_version: proto::PROTOCOL_VERSION,
+            run_id: "r".into(),
+            settings: Some(wire),
+            assigned_actor_id: None,
+        };
         let decoded = proto::validate::run_info(&info.encode_to_vec()).unwrap();
         assert_eq!(decoded, info);
+        let env = EnvConfig::try_from(decoded.settings.as_ref().and_then(|s| s.env.as_ref()).unwrap()).unwrap();
+        assert_eq!(env, EnvConfig::default(), "the env, joint limits included, survives the wire");
     }
 }

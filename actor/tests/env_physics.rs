@@ -86,10 +86,18 @@ fn zero_torque_keeps_the_base_still() {
 
 #[test]
 fn random_actions_stay_finite_and_within_joint_limits() {
-    let config = EnvConfig::default();
+    // Rigid limits hold within rapier's solver slack; soft ones, like MuJoCo's, give way by
+    // up to a few tens of degrees (the gait bank's median overshoot is 24° in both engines).
+    for (joint_limit_timeconst, tolerance) in
+        [(0.0, 2.0 * DEG), (EnvConfig::default().joint_limit_timeconst, 45.0 * DEG)]
+    {
+        random_actions_within(EnvConfig { joint_limit_timeconst, ..EnvConfig::default() }, tolerance);
+    }
+}
+
+fn random_actions_within(config: EnvConfig, tolerance: f32) {
     let mut env = VecEnv::new(&config, &[1, 2, 3, 4]);
     let mut rng = ChaCha8Rng::seed_from_u64(99);
-    let tolerance = 2.0 * DEG;
     let mut actions = vec![0u32; env.len()];
     let mut episodes = 0;
     for _ in 0..25_000 {
@@ -119,6 +127,9 @@ fn touch_forces_are_positive_in_contact_and_zero_in_the_air() {
     assert!(grounded[obs::BASE_TOUCH].iter().any(|&f| f > 0.0));
     assert!(grounded[obs::TIP_TOUCH.start..obs::PREV_ACTION.start].iter().all(|&f| f >= 0.0));
 
+    // Rigid limits in the air: soft ones let the knee fold past 150° until the tip touches
+    // the base, a contact the sensors rightly report.
+    let mut crawler = Crawler::new(EnvConfig { joint_limit_timeconst: 0.0, ..endless() }, 3);
     crawler.hold_base_in_air(0.5);
     for step in 0..300 {
         crawler.step_torques(SquareWaveGait::FORWARD.torques(step as f32 * 0.002));
@@ -169,13 +180,31 @@ fn the_sign_of_the_position_reward_follows_the_direction() {
 
 #[test]
 fn an_open_loop_square_wave_crawls_forward() {
+    // The gait that crawls upright on the study's MuJoCo model too (0.12 m/s there).
     for seed in 0..3 {
         let mut crawler = Crawler::new(endless(), seed);
         let flipped_steps = run_gait(&mut crawler, &SquareWaveGait::FORWARD, 20.0);
         let speed = crawler.distance() / 20.0;
-        assert!(speed >= 0.3, "seed {seed}: {speed} m/s");
+        assert!(speed >= 0.08, "seed {seed}: {speed} m/s");
         assert_eq!(flipped_steps, 0, "seed {seed} flipped");
     }
+}
+
+#[test]
+fn the_gait_that_tumbles_in_mujoco_tumbles_here_and_only_rigid_limits_forgive_it() {
+    // Issue 18: with rigid joint limits this engine let the square wave crawl at 0.73 m/s
+    // that tumbles on the study's model. With the default, MuJoCo-like soft limits it
+    // tumbles here too.
+    let tumbles = |config: EnvConfig| {
+        (0..3)
+            .filter(|&seed| {
+                let mut crawler = Crawler::new(config.clone(), seed);
+                run_gait(&mut crawler, &SquareWaveGait::TUMBLES_IN_MUJOCO, 20.0) > 0
+            })
+            .count()
+    };
+    assert!(tumbles(endless()) >= 2, "soft limits: the base should turn over");
+    assert_eq!(tumbles(EnvConfig { joint_limit_timeconst: 0.0, ..endless() }), 0, "rigid limits: upright");
 }
 
 #[test]
@@ -208,7 +237,7 @@ fn idle_episodes_terminate_and_long_ones_truncate() {
     assert_eq!(crawler.episode_physics_steps(), 1_500);
     assert_eq!(decisions, 150, "each decision holds for action_repeat physics steps");
     let summary = crawler.episode_summary(Some(outcome));
-    assert!(summary.truncated && (summary.duration - 3.0).abs() < 1e-4 && summary.speed > 0.2, "{summary:?}");
+    assert!(summary.truncated && (summary.duration - 3.0).abs() < 1e-4 && summary.speed > 0.1, "{summary:?}");
 }
 
 #[test]

@@ -152,6 +152,9 @@ pub struct EnvSettings {
     pub start_joint1_deg: Vec<f32>,
     #[prost(float, repeated, tag = "12")]
     pub start_joint2_deg: Vec<f32>,
+    /// 0: rigid joint limits; > 0: soft ones with this time constant in seconds.
+    #[prost(float, tag = "13")]
+    pub joint_limit_timeconst: f32,
 }
 
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, PartialOrd, Ord, prost::Enumeration)]

@@ -32,6 +32,18 @@ pub fn repo_root() -> PathBuf {
 }
 
 /// A loopback TCP port that was free a moment ago.
+/// TLS material for a deployment, made by `deploy/make-tls.sh DIR LEARNER_HOST ACTORS`.
+pub fn make_tls(dir: &Path, learner_host: &str, actors: u32) -> PathBuf {
+    let status = Command::new("bash")
+        .arg(repo_root().join("deploy/make-tls.sh"))
+        .arg(dir)
+        .args([learner_host, &actors.to_string()])
+        .status()
+        .unwrap();
+    assert!(status.success(), "make-tls.sh failed");
+    dir.to_path_buf()
+}
+
 pub fn free_port() -> u16 {
     TcpListener::bind("127.0.0.1:0").unwrap().local_addr().unwrap().port()
 }

@@ -45,6 +45,12 @@ fn a_learner_trains_on_two_actors_and_checkpoints() {
     assert_eq!(first, eval(), "eval is deterministic for fixed seeds");
     assert_eq!(first["episodes"].as_array().unwrap().len(), 3);
     assert!(first["speed"]["mean"].as_f64().unwrap().is_finite());
+    // The failures a mean hides: the slowest episode and how many barely moved.
+    let speeds: Vec<f64> = first["episodes"].as_array().unwrap().iter().map(|e| e["speed"].as_f64().unwrap()).collect();
+    let slowest = speeds.iter().copied().fold(f64::INFINITY, f64::min);
+    assert!((first["min_speed"].as_f64().unwrap() - slowest).abs() < 1e-6, "{first:#}");
+    let stuck = speeds.iter().filter(|&&v| v < first["stuck_below_speed"].as_f64().unwrap()).count() as u64;
+    assert_eq!(first["stuck_episodes"].as_u64(), Some(stuck), "{first:#}");
     assert!((first["episodes"][0]["duration"].as_f64().unwrap() - 2.0).abs() < 1e-3);
 }
 

@@ -17,37 +17,62 @@ use std::path::{Path, PathBuf};
 use std::process::{Command, Output};
 use std::time::Duration;
 
-use crawler_tests::{free_port, read_status, repo_root, u64_at, wait_for_status};
+use crawler_tests::{free_port, make_tls, read_status, repo_root, u64_at, wait_for_status};
 
 fn compose_tool() -> Vec<String> {
     let plugin = Command::new("docker").args(["compose", "version"]).output().is_ok_and(|o| o.status.success());
     if plugin { vec!["docker".into(), "compose".into()] } else { vec!["docker-compose".into()] }
 }
 
+/// One compose project of this checkout's `deploy/` files, driven by the compose tool.
 struct Compose {
     tool: Vec<String>,
     project: String,
+    /// The compose file, relative to the repository root.
+    file: &'static str,
     /// The run's name: its directory under deploy/runs.
     run: String,
-    port: u16,
+    /// Settings as deploy/README.md documents them (CRAWLER_*).
+    env: Vec<(&'static str, String)>,
+    /// One-off containers (`compose run -d --name …`), removed with the project.
+    one_off: std::cell::RefCell<Vec<String>>,
 }
 
 impl Compose {
-    fn command(&self, args: &[&str]) -> Output {
-        let output = Command::new(&self.tool[0])
+    fn new(file: &'static str, project: String, run: &str, env: Vec<(&'static str, String)>) -> Self {
+        Self { tool: compose_tool(), project, file, run: run.to_string(), env, one_off: Default::default() }
+    }
+
+    fn invoke(&self, args: &[&str]) -> Output {
+        Command::new(&self.tool[0])
             .args(&self.tool[1..])
             .args(["-p", &self.project, "-f"])
-            .arg(repo_root().join("deploy/docker-compose.yml"))
+            .arg(repo_root().join(self.file))
             .args(args)
             .env_remove("CRAWLER_RUNS")
-            .env("CRAWLER_PORT", self.port.to_string())
-            .env("CRAWLER_CONFIG", "smoke.toml")
             .env("CRAWLER_RUN", &self.run)
-            .env("CRAWLER_SET", "learner.status_every_s=0.5")
+            .envs(self.env.iter().map(|(key, value)| (key, value)))
             .output()
-            .unwrap();
+            .unwrap()
+    }
+
+    fn command(&self, args: &[&str]) -> Output {
+        let output = self.invoke(args);
         assert!(output.status.success(), "compose {args:?}: {}", String::from_utf8_lossy(&output.stderr));
         output
+    }
+
+    /// Starts a one-off container of `service` (`compose run -d`) with `extra` compose-run
+    /// options and this command line; returns its name.
+    fn run_detached(&self, name: &str, extra: &[&str], service: &str, command: &[&str]) -> String {
+        let name = format!("{}-{name}", self.project);
+        self.one_off.borrow_mut().push(name.clone());
+        let mut args = vec!["run", "-d", "--name", &name];
+        args.extend_from_slice(extra);
+        args.push(service);
+        args.extend_from_slice(command);
+        self.command(&args);
+        name
     }
 
     /// The run's directory on the host: compose's default, deploy/runs/<run>.
@@ -85,13 +110,10 @@ impl Compose {
 
 impl Drop for Compose {
     fn drop(&mut self) {
-        let _ = Command::new(&self.tool[0])
-            .args(&self.tool[1..])
-            .args(["-p", &self.project, "-f"])
-            .arg(repo_root().join("deploy/docker-compose.yml"))
-            .args(["down", "--timeout", "5"])
-            .env("CRAWLER_RUN", &self.run)
-            .output();
+        for name in self.one_off.borrow().iter() {
+            let _ = Command::new("docker").args(["rm", "-f", name]).output();
+        }
+        let _ = self.invoke(&["down", "--timeout", "5"]);
         let _ = std::fs::remove_dir_all(self.run_dir());
     }
 }
@@ -135,12 +157,16 @@ fn transitions_of(status: &serde_json::Value) -> u64 {
 #[ignore = "needs a Docker engine and the images; scripts/test runs it where `docker info` answers"]
 fn compose_trains_and_survives_a_killed_and_a_disconnected_actor() {
     assert_docker_ready();
-    let compose = Compose {
-        tool: compose_tool(),
-        project: format!("crawlertest{}", std::process::id()),
-        run: format!("docker-test-{}", std::process::id()),
-        port: free_port(),
-    };
+    let compose = Compose::new(
+        "deploy/docker-compose.yml",
+        format!("crawlertest{}", std::process::id()),
+        &format!("docker-test-{}", std::process::id()),
+        vec![
+            ("CRAWLER_PORT", free_port().to_string()),
+            ("CRAWLER_CONFIG", "smoke.toml".into()),
+            ("CRAWLER_SET", "learner.status_every_s=0.5".into()),
+        ],
+    );
     compose.command(&["up", "-d"]);
     wait_healthy(&compose.container("learner", 1), Duration::from_secs(150));
 
@@ -203,4 +229,121 @@ fn compose_trains_and_survives_a_killed_and_a_disconnected_actor() {
     let checkpoint = crawler_learner::checkpoint::load(&checkpoints).unwrap();
     assert!(checkpoint.meta.progress.updates >= updates);
     assert!(Path::new(&compose.run_dir().join("metrics.csv")).exists());
+}
+
+/// The names of the Docker networks a container is attached to.
+fn networks_of(container: &str) -> Vec<String> {
+    docker(&["inspect", "--format", "{{range $name, $_ := .NetworkSettings.Networks}}{{$name}} {{end}}", container])
+        .split_whitespace()
+        .map(String::from)
+        .collect()
+}
+
+#[test]
+#[ignore = "needs a Docker engine and the images; scripts/test runs it where `docker info` answers"]
+fn actors_of_another_compose_project_join_over_mutual_tls_and_nothing_else_does() {
+    assert_docker_ready();
+    let pid = std::process::id();
+    let material = tempfile::tempdir().unwrap();
+    // As deploy/README.md says: make-tls.sh with the name the actors dial. Here both projects
+    // share one machine, so the actors dial the host's published port as host.docker.internal.
+    let tls = make_tls(&material.path().join("tls"), "host.docker.internal", 2);
+    let other_ca = make_tls(&material.path().join("other-ca"), "host.docker.internal", 1);
+    let port = free_port();
+    let run = format!("docker-tls-test-{pid}");
+
+    // The learner host: compose.learner-tls.yml, its TLS port published on the host.
+    let learner = Compose::new(
+        "deploy/compose.learner-tls.yml",
+        format!("crawlertls{pid}learner"),
+        &run,
+        vec![
+            ("CRAWLER_PORT", port.to_string()),
+            ("CRAWLER_TLS", tls.display().to_string()),
+            ("CRAWLER_CONFIG", "smoke.toml".into()),
+            ("CRAWLER_SET", "learner.status_every_s=0.5".into()),
+        ],
+    );
+    learner.command(&["up", "-d"]);
+    let learner_container = learner.container("learner", 1);
+    wait_healthy(&learner_container, Duration::from_secs(150));
+
+    // The actor host: compose.actors.yml in a project of its own, on its own network.
+    let actors = Compose::new(
+        "deploy/compose.actors.yml",
+        format!("crawlertls{pid}actors"),
+        &run,
+        vec![("CRAWLER_LEARNER", format!("host.docker.internal:{port}")), ("CRAWLER_TLS", tls.display().to_string())],
+    );
+    actors.command(&["up", "-d"]);
+    let actor_networks = networks_of(&actors.container("actor", 1));
+    let learner_networks = networks_of(&learner_container);
+    assert!(
+        actor_networks.iter().all(|n| !learner_networks.contains(n)),
+        "the projects share a network: actors {actor_networks:?}, learner {learner_networks:?}"
+    );
+
+    let joined = learner.wait_for(Duration::from_secs(120), "two remote actors training with fresh weights", |s| {
+        s["connected_actors"] == serde_json::json!([0, 1])
+            && (0..2).all(|id| {
+                u64_at(s, &format!("/actors/{id}/transitions")) > 0
+                    && u64_at(s, &format!("/actors/{id}/weights_version")) >= 3
+            })
+    });
+    learner.wait_for(Duration::from_secs(60), "a greedy evaluation from the remote evaluator", |s| {
+        s["last_evaluation_speed"].is_number()
+    });
+
+    // Two actor containers of the actors' project that must never join: one trusts the CA
+    // but has no certificate of its own, one presents a certificate from another CA.
+    let learner_address = format!("--connect=tls/host.docker.internal:{port}");
+    let run_flag = format!("--run={run}");
+    let no_certificate = actors.run_detached(
+        "no-certificate",
+        &[],
+        "actor",
+        &[
+            &learner_address,
+            &run_flag,
+            "--id=auto",
+            "--zenoh",
+            r#"transport/link/tls/root_ca_certificate="/tls/ca.pem""#,
+        ],
+    );
+    let other_ca_mount = format!("{}:/other:ro", other_ca.display());
+    let foreign_certificate = actors.run_detached(
+        "other-ca",
+        &["-v", &other_ca_mount],
+        "actor",
+        &[
+            &learner_address,
+            &run_flag,
+            "--id=auto",
+            "--tls-ca=/tls/ca.pem",
+            "--tls-cert=/other/actor-0.pem",
+            "--tls-key=/other/actor-0.key",
+        ],
+    );
+
+    // For 30 s of their retrying, the learner's liveliness view holds the two genuine actors
+    // only, and training goes on.
+    let updates = u64_at(&joined, "/updates");
+    let watch = std::time::Instant::now();
+    while watch.elapsed() < Duration::from_secs(30) {
+        let status = learner.status().unwrap();
+        assert_eq!(status["connected_actors"], serde_json::json!([0, 1]), "{status:#}");
+        assert!(status["actors"].as_object().is_some_and(|a| a.keys().all(|id| id == "0" || id == "1")), "{status:#}");
+        std::thread::sleep(Duration::from_millis(500));
+    }
+    let status =
+        learner.wait_for(Duration::from_secs(30), "training going on", |s| u64_at(s, "/updates") > updates + 50);
+    assert_eq!(status["connected_actors"], serde_json::json!([0, 1]), "{status:#}");
+
+    // The rogues really tried: still running, still waiting, never joined.
+    for rogue in [&no_certificate, &foreign_certificate] {
+        assert_eq!(docker(&["inspect", "--format", "{{.State.Running}}", rogue]).trim(), "true", "{rogue} exited");
+        let logs = Command::new("docker").args(["logs", rogue]).output().unwrap();
+        let logs = String::from_utf8_lossy(&logs.stderr).into_owned() + &String::from_utf8_lossy(&logs.stdout);
+        assert!(logs.contains("waiting for a learner") && !logs.contains("joined run"), "{rogue}: {logs}");
+    }
 }

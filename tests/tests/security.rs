@@ -7,25 +7,14 @@
 #![allow(clippy::unwrap_used)]
 
 use std::io::{BufRead, BufReader};
-use std::path::{Path, PathBuf};
+use std::path::Path;
 use std::process::{Child, Command, Stdio};
 use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 
-use crawler_tests::{Actor, FORGED_VERSION, Learner, binary, free_port, repo_root, u64_at};
+use crawler_tests::{Actor, FORGED_VERSION, Learner, binary, free_port, make_tls, u64_at};
 
 const SMOKE: &str = "configs/smoke.toml";
-
-/// TLS material for a deployment: `make-tls.sh DIR localhost ACTORS`.
-fn make_tls(dir: &Path, actors: u32) -> PathBuf {
-    let status = Command::new("bash")
-        .arg(repo_root().join("deploy/make-tls.sh"))
-        .args([dir.to_str().unwrap(), "localhost", &actors.to_string()])
-        .status()
-        .unwrap();
-    assert!(status.success(), "make-tls.sh failed");
-    dir.to_path_buf()
-}
 
 /// `--tls-ca/--tls-cert/--tls-key` for certificate `name` (learner, actor-0, observer…).
 fn tls_flags(ca: &Path, material: &Path, name: &str) -> Vec<String> {
@@ -130,9 +119,9 @@ fn key_is(line: &serde_json::Value, key: &str) -> bool {
 #[test]
 fn only_actors_with_a_certificate_from_the_runs_ca_connect() {
     let dir = tempfile::tempdir().unwrap();
-    let tls = make_tls(&dir.path().join("tls"), 2);
+    let tls = make_tls(&dir.path().join("tls"), "localhost", 2);
     // A second CA: its certificates are well-formed but signed by the wrong authority.
-    let rogue = make_tls(&dir.path().join("rogue"), 2);
+    let rogue = make_tls(&dir.path().join("rogue"), "localhost", 2);
     let runs = dir.path().join("runs");
     let port = free_port();
     let run = "tls-connect";
@@ -167,7 +156,7 @@ fn only_actors_with_a_certificate_from_the_runs_ca_connect() {
 #[test]
 fn an_authenticated_actor_cannot_forge_weights_or_put_outside_its_rights() {
     let dir = tempfile::tempdir().unwrap();
-    let tls = make_tls(&dir.path().join("tls"), 2);
+    let tls = make_tls(&dir.path().join("tls"), "localhost", 2);
     let runs = dir.path().join("runs");
     let port = free_port();
     let run = "tls-forge";
@@ -429,7 +418,7 @@ fn attacks_over_plain_tcp_leave_training_intact() {
 #[test]
 fn attacks_by_a_certified_actor_leave_training_intact() {
     let dir = tempfile::tempdir().unwrap();
-    let tls = make_tls(&dir.path().join("tls"), 3);
+    let tls = make_tls(&dir.path().join("tls"), "localhost", 3);
     let runs = dir.path().join("runs");
     let port = free_port();
     let run = "attacked-tls";

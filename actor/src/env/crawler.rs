@@ -87,6 +87,8 @@ struct Handles {
     base_collider: ColliderHandle,
     link1_collider: ColliderHandle,
     tip_collider: ColliderHandle,
+    /// The shoulder (base–link 1) and knee (link 1–link 2) hinges.
+    joints: [ImpulseJointHandle; 2],
 }
 
 /// Running totals of the current episode.
@@ -217,6 +219,9 @@ impl Crawler {
     /// One physics step with motor torques `torques`, applied as equal and opposite torques
     /// on each joint's parent and child about the hinge axis.
     fn physics_step(&mut self, torques: [f32; 2]) {
+        if self.config.joint_limit_timeconst > 0.0 {
+            self.update_soft_limits();
+        }
         let bodies = &mut self.world.bodies;
         let axis1 = bodies[self.handles.base].rotation() * Vector::Y;
         let axis2 = bodies[self.handles.link1].rotation() * Vector::Y;
@@ -236,6 +241,41 @@ impl Crawler {
         if let Some(frames) = &mut self.recording {
             let frame = pose_frame(&self.world, &self.handles, self.episode.physics_steps as f32 * self.config.dt);
             frames.push(frame);
+        }
+    }
+
+    /// Soft joint limits, as MuJoCo's: a joint past a limit by r with rate v is pushed back
+    /// towards the reference acceleration of MuJoCo's limit constraint, k·r − b·v (k = 1/τ²,
+    /// b = 2/τ for time constant τ, critically damped), scaled to a torque by the joint's
+    /// inertia (the arm beyond it, about the hinge). rapier solves it implicitly as a
+    /// force-based spring-damper motor on the hinge, stable at any stiffness. Like MuJoCo's
+    /// unilateral constraint it only pushes back into range: when the spring-damper would
+    /// pull (a fast return), or the joint is inside its range, the motor is off.
+    fn update_soft_limits(&mut self) {
+        let timeconst = self.config.joint_limit_timeconst;
+        let (stiffness, damping) = (1.0 / (timeconst * timeconst), 2.0 / timeconst);
+        let angles = self.joint_angles();
+        let rates = self.joint_rates();
+        let inertias = joint_inertias(angles[1]);
+        for (index, [low, high]) in [JOINT1_RANGE, JOINT2_RANGE].into_iter().enumerate() {
+            let (angle, rate) = (angles[index], rates[index]);
+            let limit = if angle < low {
+                Some(low)
+            } else if angle > high {
+                Some(high)
+            } else {
+                None
+            };
+            // Pushing means towards the range: the sign of (limit − angle).
+            let limit = limit.filter(|&limit| (stiffness * (limit - angle) - damping * rate) * (limit - angle) > 0.0);
+            let Some(joint) = self.world.impulse_joints.get_mut(self.handles.joints[index], false) else { continue };
+            match limit {
+                Some(limit) => {
+                    let inertia = inertias[index];
+                    joint.data.set_motor(JointAxis::AngX, limit, 0.0, stiffness * inertia, damping * inertia);
+                }
+                None => joint.data.motor_axes.remove(JointAxesMask::ANG_X),
+            }
         }
     }
 
@@ -378,6 +418,40 @@ impl Crawler {
         }
         self.world.bodies[handles.base].set_body_type(RigidBodyType::Fixed, true);
     }
+}
+
+/// Each hinge's inertia about its own axis with the parent held still: link 1 and link 2
+/// about the shoulder (which depends on the knee angle `q2`), link 2 about the knee. The
+/// diagonal of MuJoCo's joint-space mass matrix for the two arm joints of a fixed base.
+fn joint_inertias(q2: f32) -> [f32; 2] {
+    // Capsule of length l and radius r about a transverse axis through its centre, as a
+    // cylinder plus two hemispheres (MuJoCo's and rapier's model of a capsule).
+    let capsule = |mass: f32, length: f32| {
+        let (r, half) = (LINK_RADIUS, length / 2.0);
+        let cylinder_volume = std::f32::consts::PI * r * r * length;
+        let spheres_volume = 4.0 / 3.0 * std::f32::consts::PI * r * r * r;
+        let density = mass / (cylinder_volume + spheres_volume);
+        let (cylinder_mass, spheres_mass) = (density * cylinder_volume, density * spheres_volume);
+        let cylinder = cylinder_mass * (3.0 * r * r + length * length) / 12.0;
+        // Each hemisphere: 83/320·m·r² about its own centre of mass, which sits 3r/8 beyond
+        // the cylinder's end.
+        let spheres = spheres_mass * (83.0 / 320.0 * r * r + (half + 0.375 * r).powi(2));
+        cylinder + spheres
+    };
+    let tip = TIP_MASS * (2.0 * TIP_HALF_EXTENT).powi(2) / 6.0;
+    // Link 2 (capsule centred at l2/2, tip at l2) about the knee.
+    let link2_mass = LINK2_MASS + TIP_MASS;
+    let link2_com = (LINK2_MASS * LINK2_LENGTH / 2.0 + TIP_MASS * LINK2_LENGTH) / link2_mass;
+    let link2_about_com = capsule(LINK2_MASS, LINK2_LENGTH)
+        + LINK2_MASS * (LINK2_LENGTH / 2.0 - link2_com).powi(2)
+        + tip
+        + TIP_MASS * (LINK2_LENGTH - link2_com).powi(2);
+    let knee = link2_about_com + link2_mass * link2_com * link2_com;
+    // Link 1 about the shoulder, plus link 2 whose centre is at distance d from it.
+    let link1 = capsule(LINK1_MASS, LINK1_LENGTH) + LINK1_MASS * (LINK1_LENGTH / 2.0).powi(2);
+    let d_squared = LINK1_LENGTH * LINK1_LENGTH + link2_com * link2_com + 2.0 * LINK1_LENGTH * link2_com * q2.cos();
+    let shoulder = link1 + link2_about_com + link2_mass * d_squared;
+    [shoulder, knee]
 }
 
 /// Draws the study's start pose: joint 1 uniform in its start range, joint 2 likewise, each
@@ -526,20 +600,22 @@ fn build_world(config: &EnvConfig, q1: f32, q2: f32) -> (PhysicsWorld, Handles) 
 
     // Jointed bodies never touch each other (MuJoCo excludes parent–child pairs); the base
     // still collides with link 2 and the tip, which share no joint with it.
-    let shoulder = RevoluteJointBuilder::new(Vector::Y)
-        .local_anchor1(link1_origin)
-        .local_anchor2(Vector::ZERO)
-        .limits(JOINT1_RANGE)
-        .contacts_enabled(false);
-    let knee = RevoluteJointBuilder::new(Vector::Y)
-        .local_anchor1(Vector::new(LINK1_LENGTH, 0.0, 0.0))
-        .local_anchor2(Vector::ZERO)
-        .limits(JOINT2_RANGE)
-        .contacts_enabled(false);
-    world.impulse_joints.insert(base, link1, shoulder, true);
-    world.impulse_joints.insert(link1, link2, knee, true);
+    // Rigid limits are rapier's limit constraints; soft ones are motors set at each step
+    // (`Crawler::update_soft_limits`).
+    let hinge = |anchor: Vector, range: [f32; 2]| {
+        let joint = RevoluteJointBuilder::new(Vector::Y)
+            .local_anchor1(anchor)
+            .local_anchor2(Vector::ZERO)
+            .contacts_enabled(false)
+            .motor_model(MotorModel::ForceBased)
+            .motor_max_force(f32::MAX);
+        if config.joint_limit_timeconst > 0.0 { joint } else { joint.limits(range) }
+    };
+    let shoulder = world.impulse_joints.insert(base, link1, hinge(link1_origin, JOINT1_RANGE), true);
+    let knee =
+        world.impulse_joints.insert(link1, link2, hinge(Vector::new(LINK1_LENGTH, 0.0, 0.0), JOINT2_RANGE), true);
 
-    let handles = Handles { base, link1, link2, base_collider, link1_collider, tip_collider };
+    let handles = Handles { base, link1, link2, base_collider, link1_collider, tip_collider, joints: [shoulder, knee] };
     (world, handles)
 }
 
@@ -583,6 +659,20 @@ mod tests {
         let child = Rotation::from_rotation_y(0.3 + 0.7);
         assert!((hinge_angle(&parent, &child) - 0.7).abs() < 1e-5);
         assert!((hinge_angle(&child, &parent) + 0.7).abs() < 1e-5);
+    }
+
+    #[test]
+    fn joint_inertias_match_mujocos_mass_matrix() {
+        // MuJoCo 4.0's qM diagonal for joints 1 and 2 of crawling_robot.xml with the base
+        // fixed: link 1's inertia about its centre is 7.646e-4, link 2's (with the tip)
+        // 1.2645e-3 about a centre 0.18 m from the knee.
+        let [shoulder, knee] = joint_inertias(0.0);
+        let expected_knee = 1.2645e-3 + 0.2 * 0.18 * 0.18;
+        assert!((knee - expected_knee).abs() < 1e-5, "{knee} vs {expected_knee}");
+        let expected_shoulder = 7.6456e-4 + 0.2 * 0.1 * 0.1 + 1.2645e-3 + 0.2 * 0.38 * 0.38;
+        assert!((shoulder - expected_shoulder).abs() < 1e-5, "{shoulder} vs {expected_shoulder}");
+        let [folded, _] = joint_inertias(std::f32::consts::FRAC_PI_2);
+        assert!(folded < shoulder, "folding the knee brings link 2 closer to the shoulder");
     }
 
     #[test]

@@ -3,6 +3,8 @@
 //! `eval runs/<run>/checkpoints` (newest) or `eval runs/<run>/checkpoints/step-…`.
 //! Per-episode results and mean ± std go to stdout as JSON; a summary goes to stderr.
 //! Episodes last `--seconds` of simulated time; the progress rule does not cut them short.
+//! A mean hides the starts a policy never gets going from, so the report also counts stuck
+//! episodes (slower than [`STUCK_SPEED`]) and gives the slowest episode's speed.
 
 use std::path::PathBuf;
 
@@ -10,6 +12,9 @@ use clap::Parser;
 use crawler_learner::evaluate::{evaluation_env, greedy_episode, load_policy};
 use serde::Serialize;
 use tracing::info;
+
+/// An episode slower than this (m/s) is stuck: the crawler barely moved.
+const STUCK_SPEED: f32 = 0.05;
 
 #[derive(Debug, Parser)]
 #[command(version, about = "Evaluate a checkpoint greedily: speed in m/s, distance, return, flips")]
@@ -80,8 +85,10 @@ fn main() -> anyhow::Result<()> {
     let distance = mean_std(episodes.iter().map(|e| f64::from(e.distance)));
     let episode_return = mean_std(episodes.iter().map(|e| f64::from(e.episode_return)));
     let flips: u32 = episodes.iter().map(|e| e.flips).sum();
+    let min_speed = episodes.iter().map(|e| e.speed).fold(f32::INFINITY, f32::min);
+    let stuck = episodes.iter().filter(|e| e.speed < STUCK_SPEED).count();
     eprintln!(
-        "{}: speed {:.3} ± {:.3} m/s, distance {:.2} ± {:.2} m, return {:.1} ± {:.1}, flips {flips} over {} episodes of {} s",
+        "{}: speed {:.3} ± {:.3} m/s (min {min_speed:.3}, {stuck} stuck below {STUCK_SPEED} m/s), distance {:.2} ± {:.2} m, return {:.1} ± {:.1}, flips {flips} over {} episodes of {} s",
         loaded.path.display(),
         speed.mean,
         speed.std,
@@ -104,6 +111,9 @@ fn main() -> anyhow::Result<()> {
         "seconds": args.seconds,
         "episodes": episodes,
         "speed": speed,
+        "min_speed": min_speed,
+        "stuck_episodes": stuck,
+        "stuck_below_speed": STUCK_SPEED,
         "distance": distance,
         "return": episode_return,
         "flips": flips,

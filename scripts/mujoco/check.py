@@ -1,0 +1,344 @@
+"""Cross-simulator check: this project's crawler against the study's own MuJoCo model.
+
+Run through scripts/mujoco-check, which installs the pinned MuJoCo into a cached venv.
+
+  eval CHECKPOINTS   greedy episodes of a checkpoint in MuJoCo, on the study's model
+                     (crawling_robot.xml, a copy of the study's MJCF), with the observation
+                     built as actor/src/env/observation.rs documents it and the checkpoint's
+                     own action levels, torque limit, action repeat and direction. Prints one
+                     JSON object: per-episode speed, flips, joint-limit overshoot, and the
+                     summary (mean, min, stuck episodes).
+  observe Q1 Q2      the observation after a reset to joint angles (Q1, Q2) in radians and
+                     --steps physics steps of the constant --torques, as JSON: the layout
+                     check against the Rust env (tests/tests/outputs.rs).
+  act CHECKPOINTS    greedy actions of a checkpoint's network for observations given as
+                     JSON lists, one per line on stdin: the numpy MLP against the Rust one.
+  gaits              the gait bank (actor/examples/gait_bank.rs prints it, with each gait's
+                     start poses, mean speed and flips in this project's env, as JSON lines
+                     on stdin) run in MuJoCo: each gait's speed and flips in both engines,
+                     their rank correlation and mean absolute difference.
+
+No torch: checkpoints are read with safetensors and run by a numpy MLP.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import sys
+from pathlib import Path
+
+import mujoco
+import numpy as np
+from safetensors.numpy import load_file
+
+MODEL = Path(__file__).with_name("crawling_robot.xml")
+DEG = math.pi / 180.0
+JOINT1_RANGE = (-80.0 * DEG, 80.0 * DEG)
+JOINT2_RANGE = (0.0, 150.0 * DEG)
+# Geometry used to lift a start pose clear of the floor, as the Rust env does (model.rs).
+BASE_HALF, LINK1_LENGTH, LINK2_LENGTH, LINK_RADIUS, TIP_HALF, FLOOR_Z = 0.05, 0.20, 0.24, 0.01, 0.01, -0.05
+STUCK_SPEED = 0.05  # m/s: an episode slower than this is stuck (issue 18's definition)
+
+
+def rot_y(angle: float) -> np.ndarray:
+    c, s = math.cos(angle), math.sin(angle)
+    return np.array([[c, 0.0, s], [0.0, 1.0, 0.0], [-s, 0.0, c]])
+
+
+def start_lift(q1: float, q2: float) -> float:
+    """How far to lift a crawler posed with its base at rest so no part is below the floor
+    (actor/src/env/crawler.rs, start_lift)."""
+    r1, r2 = rot_y(q1), rot_y(q1 + q2)
+    link1_origin = np.array([BASE_HALF, 0.0, 0.0])
+    link2_origin = link1_origin + r1 @ np.array([LINK1_LENGTH, 0.0, 0.0])
+    lowest = -BASE_HALF
+    lowest = min(lowest, link2_origin[2] - LINK_RADIUS)
+    link2_end = link2_origin + r2 @ np.array([LINK2_LENGTH, 0.0, 0.0])
+    lowest = min(lowest, link2_end[2] - LINK_RADIUS)
+    for sx in (-1, 1):
+        for sy in (-1, 1):
+            for sz in (-1, 1):
+                corner = np.array([LINK2_LENGTH + sx * TIP_HALF, sy * TIP_HALF, sz * TIP_HALF])
+                lowest = min(lowest, (link2_origin + r2 @ corner)[2])
+    return max(FLOOR_Z - lowest, 0.0)
+
+
+class Crawler:
+    """The study's model with a clean reset: base at rest, joints at (q1, q2), zero velocity."""
+
+    def __init__(self) -> None:
+        self.model = mujoco.MjModel.from_xml_path(str(MODEL))
+        self.data = mujoco.MjData(self.model)
+        self.dt = self.model.opt.timestep
+
+    def reset(self, q1: float, q2: float) -> None:
+        q1 = min(max(q1, JOINT1_RANGE[0]), JOINT1_RANGE[1])
+        q2 = min(max(q2, JOINT2_RANGE[0]), JOINT2_RANGE[1])
+        mujoco.mj_resetData(self.model, self.data)
+        self.data.qpos[0:3] = [0.0, 0.0, start_lift(q1, q2)]
+        self.data.qpos[3:7] = [1.0, 0.0, 0.0, 0.0]
+        self.data.qpos[7:9] = [q1, q2]
+        mujoco.mj_forward(self.model, self.data)
+        self.stepped = False  # no contact solve yet: touch forces read 0, as in the Rust env
+        self.flipped = False
+        self.flips = 0
+        self.overshoot = 0.0  # largest excursion beyond a joint limit, radians
+        self.start_x = float(self.data.qpos[0])
+
+    def step(self, torques) -> None:
+        self.data.ctrl[:] = torques
+        mujoco.mj_step(self.model, self.data)
+        self.stepped = True
+        up_z = self.rotation()[2, 2]
+        flipped = up_z < 0.0
+        if flipped and not self.flipped:
+            self.flips += 1
+        self.flipped = flipped
+        q1, q2 = self.data.qpos[7], self.data.qpos[8]
+        beyond = max(JOINT1_RANGE[0] - q1, q1 - JOINT1_RANGE[1], JOINT2_RANGE[0] - q2, q2 - JOINT2_RANGE[1], 0.0)
+        self.overshoot = max(self.overshoot, beyond)
+
+    def rotation(self) -> np.ndarray:
+        matrix = np.zeros(9)
+        mujoco.mju_quat2Mat(matrix, self.data.qpos[3:7])
+        return matrix.reshape(3, 3)
+
+    def distance(self, direction: float) -> float:
+        return direction * (float(self.data.qpos[0]) - self.start_x)
+
+    def observe(self, previous_torques) -> np.ndarray:
+        """The 40 values of actor/src/env/observation.rs, from the current state. Touch forces
+        are those of the last step's contact solve (MuJoCo computes sensors before it
+        integrates), as in the Rust env; link angular velocities are composed from the
+        current base angular velocity and joint rates (world frame)."""
+        qpos, qvel = self.data.qpos, self.data.qvel
+        rotation = self.rotation()
+        base_angvel_world = rotation @ qvel[3:6]
+        axis_world = rotation @ np.array([0.0, 1.0, 0.0])  # both hinges turn about the base's y
+        link1 = base_angvel_world + qvel[6] * axis_world
+        link2 = link1 + qvel[7] * axis_world
+        touches = self.data.sensordata[6:23] if self.stepped else np.zeros(17)
+        return np.concatenate(
+            [[qpos[2]], qpos[3:7], qpos[7:9], qvel[0:3], qvel[3:6], qvel[6:8], link1, link2, touches, previous_torques]
+        ).astype(np.float32)
+
+
+class Mlp:
+    """The checkpoint's Q-network (actor/src/policy/spec.rs): Linear, LayerNorm?, ReLU per
+    hidden layer, then a Linear, with nn.Sequential names."""
+
+    def __init__(self, weights: dict, network: dict) -> None:
+        stride = 3 if network.get("layer_norm", True) else 2
+        self.layers = []
+        for i in range(len(network["hidden"])):
+            index = stride * i
+            norm = None
+            if stride == 3:
+                norm = (weights[f"{index + 1}.weight"], weights[f"{index + 1}.bias"])
+            self.layers.append((weights[f"{index}.weight"], weights[f"{index}.bias"], norm))
+        last = stride * len(network["hidden"])
+        self.output = (weights[f"{last}.weight"], weights[f"{last}.bias"])
+
+    def __call__(self, x: np.ndarray) -> np.ndarray:
+        for weight, bias, norm in self.layers:
+            x = weight @ x + bias
+            if norm is not None:
+                mean, var = x.mean(), x.var()
+                x = (x - mean) / np.sqrt(var + 1e-5) * norm[0] + norm[1]
+            x = np.maximum(x, 0.0)
+        return self.output[0] @ x + self.output[1]
+
+
+def newest_checkpoint(path: Path) -> Path:
+    if (path / "meta.json").exists():
+        return path
+    steps = sorted(
+        (p for p in path.glob("step-*") if (p / "meta.json").exists()), key=lambda p: int(p.name.split("-")[1])
+    )
+    if not steps:
+        sys.exit(f"error: no checkpoint in {path}; point at a run's checkpoints directory or a step-* directory")
+    return steps[-1]
+
+
+def load_policy(path: Path) -> tuple[Path, dict, Mlp]:
+    checkpoint = newest_checkpoint(path)
+    meta = json.loads((checkpoint / "meta.json").read_text())
+    return checkpoint, meta, Mlp(load_file(str(checkpoint / "weights.safetensors")), meta["network"])
+
+
+def act(args) -> None:
+    _, _, policy = load_policy(Path(args.checkpoints))
+    for line in sys.stdin:
+        if line.strip():
+            observation = np.array(json.loads(line), dtype=np.float32)
+            print(int(np.argmax(policy(observation))))
+
+
+def evaluate(args) -> None:
+    checkpoint, meta, policy = load_policy(Path(args.checkpoints))
+    env = meta["config"].get("env", {})
+    levels = int(env.get("action_levels", 5))
+    max_torque = float(env.get("max_torque", 1.0))
+    repeat = int(args.action_repeat or env.get("action_repeat", 1))
+    direction = -1.0 if env.get("direction", "forward") == "backward" else 1.0
+    start1 = env.get("start_joint1_deg", [-45.0, 0.0])
+    start2 = env.get("start_joint2_deg", [-22.5, 22.5])
+    torque_of = lambda level: -max_torque + 2.0 * max_torque * level / max(levels - 1, 1)  # noqa: E731
+
+    crawler = Crawler()
+    steps = round(args.seconds / crawler.dt)
+    rng = np.random.default_rng(args.seed)
+    episodes = []
+    for _ in range(args.episodes):
+        q1 = rng.uniform(*start1) * DEG
+        q2 = rng.uniform(*start2) * DEG
+        crawler.reset(q1, q2)
+        torques = np.zeros(2)
+        step = 0
+        while step < steps:
+            action = int(np.argmax(policy(crawler.observe(torques))))
+            torques = np.array([torque_of(action // levels), torque_of(action % levels)])
+            for _ in range(min(repeat, steps - step)):
+                crawler.step(torques)
+                step += 1
+        speed = crawler.distance(direction) / args.seconds
+        episodes.append(
+            {"speed": speed, "flips": crawler.flips, "joint_limit_overshoot_deg": crawler.overshoot / DEG}
+        )
+    speeds = np.array([e["speed"] for e in episodes])
+    summary = {
+        "mean_speed": float(speeds.mean()),
+        "std_speed": float(speeds.std()),
+        "min_speed": float(speeds.min()),
+        "stuck_episodes": int((speeds < STUCK_SPEED).sum()),
+        "flips": int(sum(e["flips"] for e in episodes)),
+        "max_joint_limit_overshoot_deg": float(max(e["joint_limit_overshoot_deg"] for e in episodes)),
+    }
+    report = {
+        "engine": f"mujoco {mujoco.__version__}",
+        "checkpoint": str(checkpoint),
+        "action_repeat": repeat,
+        "episodes": episodes,
+        "summary": summary,
+    }
+    json.dump(report, sys.stdout)
+    print()
+    print(
+        f"MuJoCo: {summary['mean_speed']:.3f} ± {summary['std_speed']:.3f} m/s, min {summary['min_speed']:.3f}, "
+        f"{summary['stuck_episodes']}/{len(episodes)} stuck, {summary['flips']} flips, "
+        f"overshoot ≤ {summary['max_joint_limit_overshoot_deg']:.1f}°",
+        file=sys.stderr,
+    )
+
+
+def square_wave(gait: dict, t: float) -> list:
+    def first_half(phase: float) -> bool:
+        return (t / gait["period"] - phase) % 1.0 < 0.5
+
+    torque = lambda j, phase: gait["high"][j] if first_half(phase) else gait["low"][j]  # noqa: E731
+    return [torque(0, 0.0), torque(1, gait["phase_lag"])]
+
+
+def ranks(values: np.ndarray) -> np.ndarray:
+    order = values.argsort(kind="stable")
+    ranked = np.empty(len(values))
+    ranked[order] = np.arange(len(values))
+    for value in np.unique(values):  # ties share their mean rank
+        tied = values == value
+        ranked[tied] = ranked[tied].mean()
+    return ranked
+
+
+def gaits(args) -> None:
+    bank = [json.loads(line) for line in sys.stdin if line.strip()]
+    if not bank:
+        sys.exit("error: no gaits on stdin; pipe in `cargo run --release -p crawler-actor --example gait_bank`")
+    crawler = Crawler()
+    rows = []
+    for entry in bank:
+        gait = entry["gait"]
+        steps = round(entry["seconds"] / crawler.dt)
+        distance, flips, overshoot = 0.0, 0, 0.0
+        for q1, q2 in entry["starts"]:
+            crawler.reset(q1, q2)
+            for s in range(steps):
+                crawler.step(square_wave(gait, s * crawler.dt))
+            distance += crawler.distance(1.0)
+            flips += crawler.flips
+            overshoot = max(overshoot, crawler.overshoot / DEG)
+        rows.append(
+            {
+                "gait": gait,
+                "rapier": {"speed": entry["speed"], "flips": entry["flips"], "overshoot_deg": entry["overshoot_deg"]},
+                "mujoco": {
+                    "speed": distance / (entry["seconds"] * len(entry["starts"])),
+                    "flips": flips,
+                    "overshoot_deg": overshoot,
+                },
+            }
+        )
+        print(json.dumps(rows[-1]))
+        sys.stdout.flush()
+    ours = np.array([r["rapier"]["speed"] for r in rows])
+    theirs = np.array([r["mujoco"]["speed"] for r in rows])
+    correlation = float(np.corrcoef(ranks(ours), ranks(theirs))[0, 1])
+    mad = float(np.abs(ours - theirs).mean())
+    flips_ours = sum(r["rapier"]["flips"] > 0 for r in rows)
+    flips_theirs = sum(r["mujoco"]["flips"] > 0 for r in rows)
+    flip_agreement = sum((r["rapier"]["flips"] > 0) == (r["mujoco"]["flips"] > 0) for r in rows)
+    overshoot = {engine: float(np.median([r[engine]["overshoot_deg"] for r in rows])) for engine in ("rapier", "mujoco")}
+    summary = {
+        "gaits": len(rows),
+        "spearman": correlation,
+        "mean_abs_speed_difference": mad,
+        "gaits_flipping": {"rapier": flips_ours, "mujoco": flips_theirs},
+        "flip_agreement": flip_agreement,
+        "median_overshoot_deg": overshoot,
+    }
+    print(json.dumps({"summary": summary}))
+    print(
+        f"{len(rows)} gaits: Spearman {correlation:.3f}, mean |Δspeed| {mad:.3f} m/s, gaits that flip: "
+        f"rapier {flips_ours}, MuJoCo {flips_theirs}, agreeing on flips {flip_agreement}/{len(rows)}, "
+        f"median joint-limit overshoot: rapier {overshoot['rapier']:.1f}°, MuJoCo {overshoot['mujoco']:.1f}°",
+        file=sys.stderr,
+    )
+
+
+def observe(args) -> None:
+    crawler = Crawler()
+    crawler.reset(args.q1, args.q2)
+    torques = np.array(args.torques if args.steps > 0 else [0.0, 0.0])
+    for _ in range(args.steps):
+        crawler.step(torques)
+    print(json.dumps([float(v) for v in crawler.observe(torques)]))
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    commands = parser.add_subparsers(dest="command", required=True)
+    eval_parser = commands.add_parser("eval", help="greedy episodes of a checkpoint in MuJoCo")
+    eval_parser.add_argument("checkpoints", help="a run's checkpoints directory or one step-* directory")
+    eval_parser.add_argument("--episodes", type=int, default=10)
+    eval_parser.add_argument("--seconds", type=float, default=20.0)
+    eval_parser.add_argument("--seed", type=int, default=1_000_000)
+    eval_parser.add_argument("--action-repeat", type=int, help="override the checkpoint's action repeat")
+    eval_parser.set_defaults(run=evaluate)
+    act_parser = commands.add_parser("act", help="greedy actions for observations on stdin")
+    act_parser.add_argument("checkpoints")
+    act_parser.set_defaults(run=act)
+    observe_parser = commands.add_parser("observe", help="the observation after a reset, as JSON")
+    observe_parser.add_argument("q1", type=float)
+    observe_parser.add_argument("q2", type=float)
+    observe_parser.add_argument("--steps", type=int, default=0)
+    observe_parser.add_argument("--torques", type=float, nargs=2, default=[0.0, 0.0])
+    observe_parser.set_defaults(run=observe)
+    gait_parser = commands.add_parser("gaits", help="the gait bank from stdin, in MuJoCo")
+    gait_parser.set_defaults(run=gaits)
+    args = parser.parse_args()
+    args.run(args)
+
+
+if __name__ == "__main__":
+    main()
