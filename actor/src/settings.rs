@@ -5,7 +5,7 @@
 use crawler_proto as proto;
 use serde::{Deserialize, Serialize};
 
-use crate::env::{Direction, EnvConfig};
+use crate::env::{Direction, EnvConfig, Randomization};
 use crate::policy::{EpsilonDecay, apex_epsilon};
 
 /// Why run settings received from a learner are unusable.
@@ -163,7 +163,39 @@ impl From<&EnvConfig> for proto::EnvSettings {
             start_joint1_deg: env.start_joint1_deg.to_vec(),
             start_joint2_deg: env.start_joint2_deg.to_vec(),
             joint_limit_timeconst: env.joint_limit_timeconst,
+            randomization: env.randomization.is_active().then(|| {
+                let r = &env.randomization;
+                proto::RandomizationSettings {
+                    friction_scale: r.friction_scale.to_vec(),
+                    mass_scale: r.mass_scale.to_vec(),
+                    motor_strength: r.motor_strength.to_vec(),
+                    joint_limit_timeconst: r.joint_limit_timeconst.to_vec(),
+                    latency_steps: r.latency_steps.to_vec(),
+                    observation_noise: r.observation_noise,
+                }
+            }),
         }
+    }
+}
+
+impl TryFrom<&proto::RandomizationSettings> for Randomization {
+    type Error = SettingsError;
+
+    fn try_from(r: &proto::RandomizationSettings) -> Result<Self, SettingsError> {
+        // Ranges are checked with the whole env by `EnvConfig::validate`.
+        let latency: [u32; 2] = r.latency_steps.as_slice().try_into().map_err(|_| SettingsError::Field {
+            field: "env.randomization.latency_steps",
+            value: proto::validate::quoted_prefix(&format!("{:?}", r.latency_steps)),
+            allowed: "exactly two values [low, high]",
+        })?;
+        Ok(Randomization {
+            friction_scale: pair(&r.friction_scale, "env.randomization.friction_scale")?,
+            mass_scale: pair(&r.mass_scale, "env.randomization.mass_scale")?,
+            motor_strength: pair(&r.motor_strength, "env.randomization.motor_strength")?,
+            joint_limit_timeconst: pair(&r.joint_limit_timeconst, "env.randomization.joint_limit_timeconst")?,
+            latency_steps: latency,
+            observation_noise: r.observation_noise,
+        })
     }
 }
 
@@ -196,6 +228,7 @@ impl TryFrom<&proto::EnvSettings> for EnvConfig {
             start_joint1_deg: pair(&env.start_joint1_deg, "env.start_joint1_deg")?,
             start_joint2_deg: pair(&env.start_joint2_deg, "env.start_joint2_deg")?,
             joint_limit_timeconst: env.joint_limit_timeconst,
+            randomization: env.randomization.as_ref().map(Randomization::try_from).transpose()?.unwrap_or_default(),
         };
         config.validate()?;
         Ok(config)
@@ -311,5 +344,8 @@ mod wire_tests {
         assert_eq!(decoded, info);
         let env = EnvConfig::try_from(decoded.settings.as_ref().and_then(|s| s.env.as_ref()).unwrap()).unwrap();
         assert_eq!(env, EnvConfig::default(), "the env, joint limits included, survives the wire");
+        let randomized = EnvConfig { randomization: Randomization::EVAL_PERTURBATIONS, ..EnvConfig::default() };
+        let back = EnvConfig::try_from(&proto::EnvSettings::from(&randomized)).unwrap();
+        assert_eq!(back, randomized, "the randomisation survives the wire");
     }
 }

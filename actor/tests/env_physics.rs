@@ -266,3 +266,52 @@ fn bad_settings_are_rejected_by_name() {
     assert!(bad.validate().unwrap_err().to_string().contains("env.dt"));
     assert!(EnvConfig::default().validate().is_ok());
 }
+
+#[test]
+fn randomised_physics_is_drawn_per_episode_reproducibly_and_acts_on_the_robot() {
+    use crawler_actor::env::Randomization;
+    let randomized = EnvConfig { randomization: Randomization::EVAL_PERTURBATIONS, ..endless() };
+    // Reproducible per seed, different across seeds and across episodes.
+    let a = Crawler::new(randomized.clone(), 5);
+    assert_eq!(a.episode_physics(), Crawler::new(randomized.clone(), 5).episode_physics());
+    assert_ne!(a.episode_physics(), Crawler::new(randomized.clone(), 6).episode_physics());
+    let mut b = Crawler::new(randomized.clone(), 5);
+    b.reset();
+    assert_ne!(a.episode_physics(), b.episode_physics(), "a new episode draws new physics");
+
+    // Latency: for its first `latency` physics steps the robot moves as if no torque came.
+    let delayed = |latency: u32, torques: [f32; 2]| {
+        let randomization = Randomization { latency_steps: [latency, latency], ..Randomization::default() };
+        let mut crawler = Crawler::new(EnvConfig { randomization, ..endless() }, 1);
+        crawler.hold_base_in_air(0.5);
+        (0..6)
+            .map(|_| {
+                crawler.step_torques(torques);
+                crawler.joint_rates()
+            })
+            .collect::<Vec<_>>()
+    };
+    let idle = delayed(4, [0.0, 0.0]);
+    let pushed = delayed(4, [1.0, 1.0]);
+    assert_eq!(idle[..4], pushed[..4], "no torque reaches the motors for 4 steps");
+    assert_ne!(idle[5], pushed[5], "then it does");
+
+    // Motor strength scales what the motors deliver.
+    let knee_rate = |strength: f32| {
+        let randomization = Randomization { motor_strength: [strength, strength], ..Randomization::default() };
+        let mut crawler = Crawler::new(EnvConfig { randomization, ..endless() }, 1);
+        crawler.hold_base_in_air(0.5);
+        let mut rates = [[0.0; 2]; 2];
+        for torques in [[0.0, 0.0], [0.0, 1.0]] {
+            crawler.reset_to([-0.5, 0.5]);
+            crawler.hold_base_in_air(0.5);
+            for _ in 0..5 {
+                crawler.step_torques(torques);
+            }
+            rates[usize::from(torques[1] > 0.0)] = crawler.joint_rates();
+        }
+        rates[1][1] - rates[0][1]
+    };
+    let (full, half) = (knee_rate(1.0), knee_rate(0.5));
+    assert!(full > 0.0 && (half / full - 0.5).abs() < 0.1, "half strength, half the push: {half} vs {full}");
+}

@@ -17,8 +17,9 @@ pub use validate::{ProtoError, SequenceTracker, TransitionLimits};
 
 /// Version of the wire protocol. Bumped with any incompatible change to a message or key.
 /// 2: run settings as a proto message (was JSON); weights ordered by learner session.
-/// 3: the env settings carry the joint limits' softness (`EnvSettings.joint_limit_timeconst`);
-///    an older actor, which would silently simulate rigid limits, is refused.
+/// 3: the env settings carry the joint limits' softness (`EnvSettings.joint_limit_timeconst`)
+///    and the physics randomisation; an older actor, which would silently simulate other
+///    physics, is refused.
 pub const PROTOCOL_VERSION: u32 = 3;
 
 /// Largest encoded message a node accepts, in bytes. The largest legal messages: a batch of

@@ -155,6 +155,27 @@ pub struct EnvSettings {
     /// 0: rigid joint limits; > 0: soft ones with this time constant in seconds.
     #[prost(float, tag = "13")]
     pub joint_limit_timeconst: f32,
+    /// Per-episode physics randomisation; absent: none.
+    #[prost(message, optional, tag = "14")]
+    pub randomization: Option<RandomizationSettings>,
+}
+
+/// Ranges drawn once per episode (`crawler_actor::env::Randomization` documents each); every
+/// `[low, high]` pair is two values.
+#[derive(Clone, PartialEq, prost::Message)]
+pub struct RandomizationSettings {
+    #[prost(float, repeated, tag = "1")]
+    pub friction_scale: Vec<f32>,
+    #[prost(float, repeated, tag = "2")]
+    pub mass_scale: Vec<f32>,
+    #[prost(float, repeated, tag = "3")]
+    pub motor_strength: Vec<f32>,
+    #[prost(float, repeated, tag = "4")]
+    pub joint_limit_timeconst: Vec<f32>,
+    #[prost(uint32, repeated, tag = "5")]
+    pub latency_steps: Vec<u32>,
+    #[prost(float, tag = "6")]
+    pub observation_noise: f32,
 }
 
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, PartialOrd, Ord, prost::Enumeration)]

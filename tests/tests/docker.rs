@@ -339,11 +339,16 @@ fn actors_of_another_compose_project_join_over_mutual_tls_and_nothing_else_does(
         learner.wait_for(Duration::from_secs(30), "training going on", |s| u64_at(s, "/updates") > updates + 50);
     assert_eq!(status["connected_actors"], serde_json::json!([0, 1]), "{status:#}");
 
-    // The rogues really tried: still running, still waiting, never joined.
+    // The rogues really tried, at the learner's address, all along: still running (an actor
+    // keeps retrying a learner it cannot reach), and never joined the run.
     for rogue in [&no_certificate, &foreign_certificate] {
         assert_eq!(docker(&["inspect", "--format", "{{.State.Running}}", rogue]).trim(), "true", "{rogue} exited");
         let logs = Command::new("docker").args(["logs", rogue]).output().unwrap();
         let logs = String::from_utf8_lossy(&logs.stderr).into_owned() + &String::from_utf8_lossy(&logs.stdout);
-        assert!(logs.contains("waiting for a learner") && !logs.contains("joined run"), "{rogue}: {logs}");
+        assert!(
+            logs.contains("connecting to the learner") && logs.contains(&format!("host.docker.internal:{port}")),
+            "{rogue}: {logs}"
+        );
+        assert!(!logs.contains("joined run"), "{rogue}: {logs}");
     }
 }

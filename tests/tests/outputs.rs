@@ -215,11 +215,13 @@ fn mujoco_cross_check_agrees_on_layout_and_policy_and_runs_an_episode() {
     let theirs: Vec<f32> = serde_json::from_str(&mujoco_check(&args, "")).unwrap();
     assert_eq!(theirs.len(), OBS_DIM);
     // Pose, velocities and previous torques (indices 0..21 and 38..40); touch forces differ
-    // between a soft and a rigid contact model and are left out.
+    // between a soft and a rigid contact model and are left out. The base's small rocking
+    // on the floor differs between the engines by a few hundredths (rad/s); a value in the
+    // wrong place, frame or sign is off by the arm's own motion, ten times more.
     for index in (0..21).chain(38..40) {
         let (a, b) = (ours[index], theirs[index]);
         assert!(
-            (a - b).abs() <= 0.02 + 0.1 * a.abs().max(b.abs()),
+            (a - b).abs() <= 0.06 + 0.1 * a.abs().max(b.abs()),
             "observation[{index}]: this env {a}, MuJoCo {b}\nours {ours:?}\ntheirs {theirs:?}"
         );
     }

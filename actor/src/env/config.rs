@@ -2,6 +2,8 @@
 
 use serde::{Deserialize, Serialize};
 
+use super::randomization::Randomization;
+
 /// Which way along x the crawler is rewarded for moving.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, Default)]
 #[serde(rename_all = "lowercase")]
@@ -61,6 +63,8 @@ pub struct EnvConfig {
     /// this model scales the reference acceleration by the arm's inertia with the base held,
     /// MuJoCo by the smaller inertia the free base leaves, so its 0.02 s is softer than ours.
     pub joint_limit_timeconst: f32,
+    /// Per-episode physics randomisation (off by default).
+    pub randomization: Randomization,
 }
 
 impl Default for EnvConfig {
@@ -79,6 +83,7 @@ impl Default for EnvConfig {
             start_joint1_deg: [-45.0, 0.0],
             start_joint2_deg: [-22.5, 22.5],
             joint_limit_timeconst: 0.05,
+            randomization: Randomization::default(),
         }
     }
 }
@@ -134,6 +139,7 @@ impl EnvConfig {
             timeconst,
             "0 (rigid limits) or a time constant in [0.001, 1] s",
         )?;
+        self.randomization.validate().map_err(|(key, value, allowed)| EnvConfigError { key, value, allowed })?;
         for (key, range) in [("start_joint1_deg", self.start_joint1_deg), ("start_joint2_deg", self.start_joint2_deg)] {
             check(
                 range.iter().all(|v| v.is_finite()) && range[0] <= range[1],

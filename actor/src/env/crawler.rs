@@ -12,6 +12,7 @@ use rapier3d::prelude::*;
 use super::config::EnvConfig;
 use super::model::*;
 use super::observation::{self as obs, OBS_DIM};
+use super::randomization::EpisodePhysics;
 
 /// The reward of one decision step, by component. Both are sums over the physics steps the
 /// decision was held for, so their scale per second does not depend on the action repeat.
@@ -111,6 +112,12 @@ pub struct Crawler {
     applied_torques: [f32; 2],
     touches: [f32; 17],
     recording: Option<Vec<PoseFrame>>,
+    /// This episode's physics (the env's own unless randomised).
+    physics: EpisodePhysics,
+    /// Torques decided but not yet at the motors: `physics.latency_steps` of them.
+    in_flight: std::collections::VecDeque<[f32; 2]>,
+    /// Observation noise of the current decision (zeros without noise).
+    noise: [f32; OBS_DIM],
 }
 
 impl std::fmt::Debug for Crawler {
@@ -129,7 +136,8 @@ impl Crawler {
     pub fn new(config: EnvConfig, seed: u64) -> Self {
         let mut rng = ChaCha8Rng::seed_from_u64(seed);
         let [q1, q2] = draw_start_pose(&config, &mut rng);
-        let (world, handles) = build_world(&config, q1, q2);
+        let physics = config.randomization.draw(config.joint_limit_timeconst, &mut rng);
+        let (world, handles) = build_world(&config, &physics, q1, q2);
         let mut crawler = Self {
             config,
             rng,
@@ -139,6 +147,9 @@ impl Crawler {
             applied_torques: [0.0; 2],
             touches: [0.0; 17],
             recording: None,
+            physics,
+            in_flight: std::collections::VecDeque::new(),
+            noise: [0.0; OBS_DIM],
         };
         crawler.start_episode();
         crawler
@@ -154,15 +165,25 @@ impl Crawler {
         self.reset_to(pose);
     }
 
-    /// Starts a new episode from the given joint angles (radians), clamped into the limits.
+    /// Starts a new episode from the given joint angles (radians), clamped into the limits,
+    /// with the episode's physics drawn anew when the env randomises it.
     pub fn reset_to(&mut self, joint_angles: [f32; 2]) {
         let q1 = joint_angles[0].clamp(JOINT1_RANGE[0], JOINT1_RANGE[1]);
         let q2 = joint_angles[1].clamp(JOINT2_RANGE[0], JOINT2_RANGE[1]);
-        (self.world, self.handles) = build_world(&self.config, q1, q2);
+        self.physics = self.config.randomization.draw(self.config.joint_limit_timeconst, &mut self.rng);
+        (self.world, self.handles) = build_world(&self.config, &self.physics, q1, q2);
         self.start_episode();
     }
 
+    /// This episode's physics: the env's own, or what the randomisation drew.
+    pub fn episode_physics(&self) -> &EpisodePhysics {
+        &self.physics
+    }
+
     fn start_episode(&mut self) {
+        self.in_flight.clear();
+        self.in_flight.extend(std::iter::repeat_n([0.0; 2], self.physics.latency_steps as usize));
+        self.draw_observation_noise();
         self.applied_torques = [0.0; 2];
         self.touches = [0.0; 17];
         self.episode = EpisodeState { start_x: self.base_x(), ..EpisodeState::default() };
@@ -210,6 +231,7 @@ impl Crawler {
             }
         }
         self.applied_torques = torques;
+        self.draw_observation_noise();
         self.episode.reward.position += reward.position;
         self.episode.reward.upright += reward.upright;
         outcome.reward = reward;
@@ -218,8 +240,17 @@ impl Crawler {
 
     /// One physics step with motor torques `torques`, applied as equal and opposite torques
     /// on each joint's parent and child about the hinge axis.
-    fn physics_step(&mut self, torques: [f32; 2]) {
-        if self.config.joint_limit_timeconst > 0.0 {
+    fn physics_step(&mut self, decided: [f32; 2]) {
+        // Latency: the motors get the torques decided `latency_steps` physics steps ago.
+        let torques = if self.physics.latency_steps > 0 {
+            self.in_flight.push_back(decided);
+            self.in_flight.pop_front().unwrap_or(decided)
+        } else {
+            decided
+        };
+        let strength = self.physics.motor_strength;
+        let torques = [torques[0] * strength[0], torques[1] * strength[1]];
+        if self.physics.joint_limit_timeconst > 0.0 {
             self.update_soft_limits();
         }
         let bodies = &mut self.world.bodies;
@@ -252,7 +283,7 @@ impl Crawler {
     /// unilateral constraint it only pushes back into range: when the spring-damper would
     /// pull (a fast return), or the joint is inside its range, the motor is off.
     fn update_soft_limits(&mut self) {
-        let timeconst = self.config.joint_limit_timeconst;
+        let timeconst = self.physics.joint_limit_timeconst;
         let (stiffness, damping) = (1.0 / (timeconst * timeconst), 2.0 / timeconst);
         let angles = self.joint_angles();
         let rates = self.joint_rates();
@@ -330,6 +361,36 @@ impl Crawler {
         out[obs::LINK2_ANGVEL].copy_from_slice(&link2.angvel().to_array());
         out[obs::TIP_TOUCH.start..obs::PREV_ACTION.start].copy_from_slice(&self.touches);
         out[obs::PREV_ACTION].copy_from_slice(&self.applied_torques);
+        if self.physics.observation_noise > 0.0 {
+            for (value, noise) in out.iter_mut().zip(&self.noise) {
+                *value += noise;
+            }
+            // Noise keeps values physical: a touch sensor reads no pull, a quaternion's
+            // components stay within ±1, torques within ±τmax (the learner's validation holds
+            // actors to all three).
+            for value in &mut out[obs::TIP_TOUCH.start..obs::PREV_ACTION.start] {
+                *value = value.max(0.0);
+            }
+            for value in &mut out[obs::BASE_QUAT] {
+                *value = value.clamp(-1.0, 1.0);
+            }
+            let max = self.config.max_torque;
+            for value in &mut out[obs::PREV_ACTION] {
+                *value = value.clamp(-max, max);
+            }
+        }
+    }
+
+    /// New observation noise for the next decision: uniform, zero-mean, with the configured
+    /// standard deviation (a uniform draw over ±σ·√3).
+    fn draw_observation_noise(&mut self) {
+        let sigma = self.physics.observation_noise;
+        if sigma > 0.0 {
+            let spread = sigma * 3.0f32.sqrt();
+            for noise in &mut self.noise {
+                *noise = self.rng.random_range(-spread..=spread);
+            }
+        }
     }
 
     /// Joint angles (q1, q2) in radians: each child's rotation about its hinge's +y.
@@ -525,7 +586,7 @@ fn pose_frame(world: &PhysicsWorld, handles: &Handles, time: f32) -> PoseFrame {
 
 /// Builds the crawler's world with the base at rest and the joints at (q1, q2). If the arm
 /// would reach into the floor, the whole crawler is lifted just clear of it.
-fn build_world(config: &EnvConfig, q1: f32, q2: f32) -> (PhysicsWorld, Handles) {
+fn build_world(config: &EnvConfig, physics: &EpisodePhysics, q1: f32, q2: f32) -> (PhysicsWorld, Handles) {
     let integration_parameters = IntegrationParameters {
         dt: config.dt,
         num_solver_iterations: config.solver_iterations as usize,
@@ -542,6 +603,9 @@ fn build_world(config: &EnvConfig, q1: f32, q2: f32) -> (PhysicsWorld, Handles) 
     } else {
         (CoefficientCombineRule::Max, FLOOR_FRICTION)
     };
+    // Randomised physics scales every friction alike, and each body's mass.
+    let friction = |mu: f32| mu * physics.friction_scale;
+    let [base_mass, link1_mass, link2_mass] = physics.mass_scale;
 
     let link1_rotation = Rotation::from_rotation_y(q1);
     let link2_rotation = Rotation::from_rotation_y(q1 + q2);
@@ -553,7 +617,7 @@ fn build_world(config: &EnvConfig, q1: f32, q2: f32) -> (PhysicsWorld, Handles) 
     let floor = world.bodies.insert(RigidBodyBuilder::fixed());
     let floor_collider = ColliderBuilder::new(SharedShape::halfspace(Vector::Z))
         .translation(Vector::new(0.0, 0.0, FLOOR_Z))
-        .friction(floor_friction)
+        .friction(friction(floor_friction))
         .friction_combine_rule(rule);
     world.colliders.insert_with_parent(floor_collider, floor, &mut world.bodies);
 
@@ -564,8 +628,8 @@ fn build_world(config: &EnvConfig, q1: f32, q2: f32) -> (PhysicsWorld, Handles) 
 
     let base_collider = world.colliders.insert_with_parent(
         ColliderBuilder::cuboid(BASE_HALF_EXTENT, BASE_HALF_EXTENT, BASE_HALF_EXTENT)
-            .mass(BASE_MASS)
-            .friction(BASE_FRICTION)
+            .mass(BASE_MASS * base_mass)
+            .friction(friction(BASE_FRICTION))
             .friction_combine_rule(rule),
         base,
         &mut world.bodies,
@@ -573,8 +637,8 @@ fn build_world(config: &EnvConfig, q1: f32, q2: f32) -> (PhysicsWorld, Handles) 
     let link1_collider = world.colliders.insert_with_parent(
         ColliderBuilder::capsule_x(LINK1_LENGTH / 2.0, LINK_RADIUS)
             .translation(Vector::new(LINK1_LENGTH / 2.0, 0.0, 0.0))
-            .mass(LINK1_MASS)
-            .friction(LINK_FRICTION)
+            .mass(LINK1_MASS * link1_mass)
+            .friction(friction(LINK_FRICTION))
             .friction_combine_rule(rule),
         link1,
         &mut world.bodies,
@@ -582,8 +646,8 @@ fn build_world(config: &EnvConfig, q1: f32, q2: f32) -> (PhysicsWorld, Handles) 
     world.colliders.insert_with_parent(
         ColliderBuilder::capsule_x(LINK2_LENGTH / 2.0, LINK_RADIUS)
             .translation(Vector::new(LINK2_LENGTH / 2.0, 0.0, 0.0))
-            .mass(LINK2_MASS)
-            .friction(LINK_FRICTION)
+            .mass(LINK2_MASS * link2_mass)
+            .friction(friction(LINK_FRICTION))
             .friction_combine_rule(rule),
         link2,
         &mut world.bodies,
@@ -591,8 +655,8 @@ fn build_world(config: &EnvConfig, q1: f32, q2: f32) -> (PhysicsWorld, Handles) 
     let tip_collider = world.colliders.insert_with_parent(
         ColliderBuilder::cuboid(TIP_HALF_EXTENT, TIP_HALF_EXTENT, TIP_HALF_EXTENT)
             .translation(Vector::new(LINK2_LENGTH, 0.0, 0.0))
-            .mass(TIP_MASS)
-            .friction(TIP_FRICTION)
+            .mass(TIP_MASS * link2_mass)
+            .friction(friction(TIP_FRICTION))
             .friction_combine_rule(rule),
         link2,
         &mut world.bodies,
@@ -609,7 +673,7 @@ fn build_world(config: &EnvConfig, q1: f32, q2: f32) -> (PhysicsWorld, Handles) 
             .contacts_enabled(false)
             .motor_model(MotorModel::ForceBased)
             .motor_max_force(f32::MAX);
-        if config.joint_limit_timeconst > 0.0 { joint } else { joint.limits(range) }
+        if physics.joint_limit_timeconst > 0.0 { joint } else { joint.limits(range) }
     };
     let shoulder = world.impulse_joints.insert(base, link1, hinge(link1_origin, JOINT1_RANGE), true);
     let knee =

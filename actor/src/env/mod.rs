@@ -8,9 +8,11 @@ mod crawler;
 pub mod gait;
 pub mod model;
 pub mod observation;
+pub mod randomization;
 mod vec_env;
 
 pub use config::{Direction, EnvConfig, EnvConfigError};
 pub use crawler::{Crawler, EpisodeSummary, PoseFrame, Reward, StepOutcome};
 pub use observation::{OBS_DIM, OBS_LAYOUT_VERSION};
+pub use randomization::{EpisodePhysics, Randomization};
 pub use vec_env::VecEnv;

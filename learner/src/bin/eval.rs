@@ -29,6 +29,11 @@ struct Args {
     seconds: f32,
     #[arg(long, default_value_t = 1_000_000)]
     seed: u64,
+    /// Evaluate under perturbed physics, drawn per episode: ±30 % friction, ±20 % masses,
+    /// motors at 80–100 %, joint limits from nearly rigid (0.01 s) to soft (0.1 s), 0–4 ms of
+    /// latency (`Randomization::EVAL_PERTURBATIONS`; the report lists them).
+    #[arg(long)]
+    perturbed: bool,
     /// Override an env setting of the checkpoint's config, e.g. --set env.direction=backward.
     #[arg(long = "set", value_name = "KEY=VALUE")]
     overrides: Vec<String>,
@@ -63,7 +68,10 @@ fn main() -> anyhow::Result<()> {
     crawler_actor::cli::init_logging();
     let args = Args::parse();
     let loaded = load_policy(&args.checkpoint, &args.overrides)?;
-    let env = evaluation_env(&loaded.config.env, args.seconds)?;
+    let mut env = evaluation_env(&loaded.config.env, args.seconds)?;
+    if args.perturbed {
+        env.randomization = crawler_actor::env::Randomization::EVAL_PERTURBATIONS;
+    }
     info!(checkpoint = %loaded.path.display(), updates = loaded.meta.progress.updates, "evaluating");
 
     let mut episodes = Vec::new();
@@ -109,6 +117,7 @@ fn main() -> anyhow::Result<()> {
         "action_repeat": env.action_repeat,
         "direction": env.direction,
         "seconds": args.seconds,
+        "perturbations": args.perturbed.then_some(&env.randomization),
         "episodes": episodes,
         "speed": speed,
         "min_speed": min_speed,

@@ -1,0 +1,192 @@
+//! Per-episode physics randomisation: training for robustness to what the port gets wrong.
+//!
+//! A policy trained in one simulator exploits its exact physics; the study's MuJoCo model
+//! differs from this port in ways the gait bank measures but no single setting removes
+//! (EXPERIMENTS.md, "Fidelity"). Drawing the physics anew for each episode, as legged_gym and
+//! humanoid-gym do before their sim-to-sim checks, makes those differences look like the
+//! variation the policy must already cope with. Every range is drawn uniformly; the defaults
+//! draw nothing, so an unrandomised env is bit-for-bit what it was.
+
+use rand::Rng;
+use rand_chacha::ChaCha8Rng;
+use serde::{Deserialize, Serialize};
+
+/// Ranges, each `[low, high]`, drawn once per episode.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct Randomization {
+    /// Multiplies every friction coefficient (floor, base, links, tip).
+    pub friction_scale: [f32; 2],
+    /// Multiplies each body's mass (base, link 1, link 2 with the tip), drawn per body.
+    pub mass_scale: [f32; 2],
+    /// Multiplies each motor's torque, drawn per motor.
+    pub motor_strength: [f32; 2],
+    /// The joint limits' time constant in seconds (see `EnvConfig::joint_limit_timeconst`);
+    /// `[0, 0]` keeps the env's own setting.
+    pub joint_limit_timeconst: [f32; 2],
+    /// Physics steps between a decision and its torques reaching the motors, drawn per
+    /// episode from `[low, high]` (integers).
+    pub latency_steps: [u32; 2],
+    /// Standard deviation of zero-mean noise added to each observed value, relative to a
+    /// unit per value (uniform noise of that spread). Drawn anew for every decision.
+    pub observation_noise: f32,
+}
+
+impl Default for Randomization {
+    fn default() -> Self {
+        Self {
+            friction_scale: [1.0, 1.0],
+            mass_scale: [1.0, 1.0],
+            motor_strength: [1.0, 1.0],
+            joint_limit_timeconst: [0.0, 0.0],
+            latency_steps: [0, 0],
+            observation_noise: 0.0,
+        }
+    }
+}
+
+impl Randomization {
+    /// The perturbations `eval --perturbed` reports speed under: ±30 % friction, ±20 % masses,
+    /// motors at 80–100 %, limits from nearly rigid to twice as soft as the default, and up
+    /// to 4 ms of latency.
+    pub const EVAL_PERTURBATIONS: Randomization = Randomization {
+        friction_scale: [0.7, 1.3],
+        mass_scale: [0.8, 1.2],
+        motor_strength: [0.8, 1.0],
+        joint_limit_timeconst: [0.01, 0.1],
+        latency_steps: [0, 2],
+        observation_noise: 0.0,
+    };
+
+    /// Whether any range draws something other than the env's nominal physics.
+    pub fn is_active(&self) -> bool {
+        *self != Randomization::default()
+    }
+
+    /// Checks every range; the error names the key and what it allows.
+    pub fn validate(&self) -> Result<(), (&'static str, String, &'static str)> {
+        let scale = |key: &'static str, [low, high]: [f32; 2], max: f32| {
+            if low.is_finite() && high.is_finite() && 0.0 < low && low <= high && high <= max {
+                Ok(())
+            } else {
+                Err((
+                    key,
+                    format!("{:?}", [low, high]),
+                    "[low, high] with 0 < low ≤ high ≤ the key's maximum (10; motors 2)",
+                ))
+            }
+        };
+        scale("randomization.friction_scale", self.friction_scale, 10.0)?;
+        scale("randomization.mass_scale", self.mass_scale, 10.0)?;
+        scale("randomization.motor_strength", self.motor_strength, 2.0)?;
+        let [low, high] = self.joint_limit_timeconst;
+        let timeconst_ok = |t: f32| t.is_finite() && (0.001..=1.0).contains(&t);
+        if !((low == 0.0 && high == 0.0) || (timeconst_ok(low) && timeconst_ok(high) && low <= high)) {
+            return Err((
+                "randomization.joint_limit_timeconst",
+                format!("{:?}", [low, high]),
+                "[0, 0] (the env's own) or [low, high] within [0.001, 1] s",
+            ));
+        }
+        let [low, high] = self.latency_steps;
+        if !(low <= high && high <= 50) {
+            return Err((
+                "randomization.latency_steps",
+                format!("{:?}", [low, high]),
+                "[low, high] with low ≤ high ≤ 50",
+            ));
+        }
+        let noise = self.observation_noise;
+        if !(noise.is_finite() && (0.0..=1.0).contains(&noise)) {
+            return Err(("randomization.observation_noise", noise.to_string(), "a number in [0, 1]"));
+        }
+        Ok(())
+    }
+
+    /// One episode's physics. Draws nothing when the randomisation is off.
+    pub fn draw(&self, nominal_timeconst: f32, rng: &mut ChaCha8Rng) -> EpisodePhysics {
+        if !self.is_active() {
+            return EpisodePhysics::nominal(nominal_timeconst);
+        }
+        let mut uniform = |[low, high]: [f32; 2]| if high > low { rng.random_range(low..=high) } else { low };
+        let friction_scale = uniform(self.friction_scale);
+        let mass_scale = [uniform(self.mass_scale), uniform(self.mass_scale), uniform(self.mass_scale)];
+        let motor_strength = [uniform(self.motor_strength), uniform(self.motor_strength)];
+        let joint_limit_timeconst = if self.joint_limit_timeconst == [0.0, 0.0] {
+            nominal_timeconst
+        } else {
+            uniform(self.joint_limit_timeconst)
+        };
+        let [low, high] = self.latency_steps;
+        let latency_steps = if high > low { rng.random_range(low..=high) } else { low };
+        EpisodePhysics {
+            friction_scale,
+            mass_scale,
+            motor_strength,
+            joint_limit_timeconst,
+            latency_steps,
+            observation_noise: self.observation_noise,
+        }
+    }
+}
+
+/// The physics of one episode, as drawn.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct EpisodePhysics {
+    pub friction_scale: f32,
+    /// Base, link 1, link 2 (with the tip).
+    pub mass_scale: [f32; 3],
+    pub motor_strength: [f32; 2],
+    pub joint_limit_timeconst: f32,
+    pub latency_steps: u32,
+    pub observation_noise: f32,
+}
+
+impl EpisodePhysics {
+    /// The env's own physics: no scaling, no latency, no noise.
+    pub fn nominal(joint_limit_timeconst: f32) -> Self {
+        Self {
+            friction_scale: 1.0,
+            mass_scale: [1.0; 3],
+            motor_strength: [1.0; 2],
+            joint_limit_timeconst,
+            latency_steps: 0,
+            observation_noise: 0.0,
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use rand::SeedableRng;
+
+    #[test]
+    fn the_default_draws_nothing_and_ranges_are_respected() {
+        let mut rng = ChaCha8Rng::seed_from_u64(1);
+        let before = rng.clone();
+        assert_eq!(Randomization::default().draw(0.05, &mut rng), EpisodePhysics::nominal(0.05));
+        assert_eq!(rng, before, "an inactive randomisation consumes no random numbers");
+
+        let ranges = Randomization::EVAL_PERTURBATIONS;
+        ranges.validate().unwrap();
+        for _ in 0..200 {
+            let physics = ranges.draw(0.05, &mut rng);
+            assert!((0.7..=1.3).contains(&physics.friction_scale));
+            assert!(physics.mass_scale.iter().all(|m| (0.8..=1.2).contains(m)));
+            assert!(physics.motor_strength.iter().all(|m| (0.8..=1.0).contains(m)));
+            assert!((0.01..=0.1).contains(&physics.joint_limit_timeconst));
+            assert!(physics.latency_steps <= 2);
+        }
+    }
+
+    #[test]
+    fn bad_ranges_are_named() {
+        let bad = Randomization { mass_scale: [1.2, 0.8], ..Randomization::default() };
+        assert_eq!(bad.validate().unwrap_err().0, "randomization.mass_scale");
+        let bad = Randomization { observation_noise: f32::NAN, ..Randomization::default() };
+        assert_eq!(bad.validate().unwrap_err().0, "randomization.observation_noise");
+        let bad = Randomization { latency_steps: [0, 500], ..Randomization::default() };
+        assert_eq!(bad.validate().unwrap_err().0, "randomization.latency_steps");
+    }
+}
