@@ -65,16 +65,14 @@ fn main() -> anyhow::Result<()> {
         for start in starts {
             let mut crawler = Crawler::new(config.clone(), 1);
             crawler.reset_to(start);
-            let mut was_flipped = false;
             for s in 0..steps {
                 crawler.step_torques(gait.torques(s as f32 * config.dt));
-                let flipped = crawler.is_flipped();
-                flips += u32::from(flipped && !was_flipped);
-                was_flipped = flipped;
                 let [q1, q2] = crawler.joint_angles();
                 let beyond = [JOINT1_RANGE[0] - q1, q1 - JOINT1_RANGE[1], JOINT2_RANGE[0] - q2, q2 - JOINT2_RANGE[1]];
                 overshoot = beyond.into_iter().fold(overshoot, f32::max);
             }
+            // The env counts turn-overs (its base's top starting to face down) itself.
+            flips += crawler.episode_summary(None).flips;
             distance += crawler.distance();
         }
         let speed = distance / (SECONDS * starts.len() as f32);

@@ -139,7 +139,7 @@ impl EnvConfig {
             timeconst,
             "0 (rigid limits) or a time constant in [0.001, 1] s",
         )?;
-        self.randomization.validate().map_err(|(key, value, allowed)| EnvConfigError { key, value, allowed })?;
+        self.randomization.validate()?;
         for (key, range) in [("start_joint1_deg", self.start_joint1_deg), ("start_joint2_deg", self.start_joint2_deg)] {
             check(
                 range.iter().all(|v| v.is_finite()) && range[0] <= range[1],

@@ -11,6 +11,8 @@ use rand::Rng;
 use rand_chacha::ChaCha8Rng;
 use serde::{Deserialize, Serialize};
 
+use super::config::EnvConfigError;
+
 /// Ranges, each `[low, high]`, drawn once per episode.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]
@@ -64,16 +66,19 @@ impl Randomization {
     }
 
     /// Checks every range; the error names the key and what it allows.
-    pub fn validate(&self) -> Result<(), (&'static str, String, &'static str)> {
+    pub fn validate(&self) -> Result<(), EnvConfigError> {
+        fn error(key: &'static str, value: String, allowed: &'static str) -> Result<(), EnvConfigError> {
+            Err(EnvConfigError { key, value, allowed })
+        }
         let scale = |key: &'static str, [low, high]: [f32; 2], max: f32| {
             if low.is_finite() && high.is_finite() && 0.0 < low && low <= high && high <= max {
                 Ok(())
             } else {
-                Err((
+                error(
                     key,
                     format!("{:?}", [low, high]),
                     "[low, high] with 0 < low ≤ high ≤ the key's maximum (10; motors 2)",
-                ))
+                )
             }
         };
         scale("randomization.friction_scale", self.friction_scale, 10.0)?;
@@ -82,23 +87,23 @@ impl Randomization {
         let [low, high] = self.joint_limit_timeconst;
         let timeconst_ok = |t: f32| t.is_finite() && (0.001..=1.0).contains(&t);
         if !((low == 0.0 && high == 0.0) || (timeconst_ok(low) && timeconst_ok(high) && low <= high)) {
-            return Err((
+            return error(
                 "randomization.joint_limit_timeconst",
                 format!("{:?}", [low, high]),
                 "[0, 0] (the env's own) or [low, high] within [0.001, 1] s",
-            ));
+            );
         }
         let [low, high] = self.latency_steps;
         if !(low <= high && high <= 50) {
-            return Err((
+            return error(
                 "randomization.latency_steps",
                 format!("{:?}", [low, high]),
                 "[low, high] with low ≤ high ≤ 50",
-            ));
+            );
         }
         let noise = self.observation_noise;
         if !(noise.is_finite() && (0.0..=1.0).contains(&noise)) {
-            return Err(("randomization.observation_noise", noise.to_string(), "a number in [0, 1]"));
+            return error("randomization.observation_noise", noise.to_string(), "a number in [0, 1]");
         }
         Ok(())
     }
@@ -183,10 +188,10 @@ mod tests {
     #[test]
     fn bad_ranges_are_named() {
         let bad = Randomization { mass_scale: [1.2, 0.8], ..Randomization::default() };
-        assert_eq!(bad.validate().unwrap_err().0, "randomization.mass_scale");
+        assert_eq!(bad.validate().unwrap_err().key, "randomization.mass_scale");
         let bad = Randomization { observation_noise: f32::NAN, ..Randomization::default() };
-        assert_eq!(bad.validate().unwrap_err().0, "randomization.observation_noise");
+        assert_eq!(bad.validate().unwrap_err().key, "randomization.observation_noise");
         let bad = Randomization { latency_steps: [0, 500], ..Randomization::default() };
-        assert_eq!(bad.validate().unwrap_err().0, "randomization.latency_steps");
+        assert_eq!(bad.validate().unwrap_err().key, "randomization.latency_steps");
     }
 }
