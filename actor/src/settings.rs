@@ -163,6 +163,7 @@ impl From<&EnvConfig> for proto::EnvSettings {
             start_joint1_deg: env.start_joint1_deg.to_vec(),
             start_joint2_deg: env.start_joint2_deg.to_vec(),
             joint_limit_timeconst: env.joint_limit_timeconst,
+            max_tilt_deg: env.max_tilt_deg,
             randomization: env.randomization.is_active().then(|| {
                 let r = &env.randomization;
                 proto::RandomizationSettings {
@@ -228,6 +229,7 @@ impl TryFrom<&proto::EnvSettings> for EnvConfig {
             start_joint1_deg: pair(&env.start_joint1_deg, "env.start_joint1_deg")?,
             start_joint2_deg: pair(&env.start_joint2_deg, "env.start_joint2_deg")?,
             joint_limit_timeconst: env.joint_limit_timeconst,
+            max_tilt_deg: env.max_tilt_deg,
             randomization: env.randomization.as_ref().map(Randomization::try_from).transpose()?.unwrap_or_default(),
         };
         config.validate()?;
@@ -296,6 +298,9 @@ mod tests {
         let mut settings = ActorSettings::default();
         settings.env.direction = Direction::Backward;
         settings.env.action_repeat = 10;
+        settings.env.max_tilt_deg = 60.0;
+        settings.env.joint_limit_timeconst = 0.02;
+        settings.env.randomization.latency_steps = [0, 2];
         settings.exploration = Exploration::Decay { start: 1.0, factor: 0.99, every: 100, min: 0.05 };
         let wire = proto::ActorSettings::from(&settings);
         assert_eq!(ActorSettings::try_from(&wire), Ok(settings.clone()));
@@ -314,6 +319,13 @@ mod tests {
             env.start_joint1_deg = vec![1.0];
         }
         assert!(matches!(ActorSettings::try_from(&bad_pair), Err(SettingsError::Field { .. })));
+        // A field the sender left out reads as 0: a tilt limit of 0° is refused, not obeyed.
+        let mut no_tilt = good.clone();
+        if let Some(env) = no_tilt.env.as_mut() {
+            env.max_tilt_deg = 0.0;
+        }
+        let error = ActorSettings::try_from(&no_tilt).unwrap_err().to_string();
+        assert!(error.contains("max_tilt_deg"), "{error}");
         let mut nan = good.clone();
         nan.status_interval_s = f64::NAN;
         assert!(ActorSettings::try_from(&nan).is_err());

@@ -208,6 +208,30 @@ fn the_gait_that_tumbles_in_mujoco_tumbles_here_and_only_rigid_limits_forgive_it
 }
 
 #[test]
+fn a_fall_past_max_tilt_terminates_the_episode_before_the_base_turns_over() {
+    // The tumbling gait from its start pose: with the default (180°) it runs on and turns the
+    // base over; with 60° the episode terminates first, the base not yet upside down.
+    let run = |max_tilt_deg: f32| {
+        let mut crawler = Crawler::new(EnvConfig { max_tilt_deg, ..endless() }, 0);
+        let dt = crawler.config().dt;
+        for step in 0..10_000_u32 {
+            let outcome = crawler.step_torques(SquareWaveGait::TUMBLES_IN_MUJOCO.torques(step as f32 * dt));
+            if outcome.done() {
+                return (Some(outcome), crawler.episode_summary(Some(outcome)));
+            }
+        }
+        (None, crawler.episode_summary(None))
+    };
+    let (outcome, summary) = run(180.0);
+    assert!(outcome.is_none() && summary.flips > 0, "180° never ends an episode: {summary:?}");
+    let (outcome, summary) = run(60.0);
+    let outcome = outcome.expect("a 60° limit ends the tumbling episode");
+    assert!(outcome.terminated && !outcome.truncated, "{outcome:?}");
+    assert_eq!(summary.flips, 0, "terminated before turning over: {summary:?}");
+    assert!(summary.physics_steps < 10_000, "{summary:?}");
+}
+
+#[test]
 fn idle_episodes_terminate_and_long_ones_truncate() {
     let config = EnvConfig::default();
     let mut crawler = Crawler::new(config.clone(), 0);

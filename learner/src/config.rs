@@ -436,6 +436,35 @@ mod tests {
         assert!(missing.contains("/no/such/config.toml"), "{missing}");
     }
 
+    /// Every preset a user may pass loads and validates, and every knob in it says what it
+    /// does: a line that sets a key carries a comment.
+    #[test]
+    fn every_preset_loads_and_comments_each_knob() {
+        let configs = Path::new(env!("CARGO_MANIFEST_DIR")).join("../configs");
+        let mut presets: Vec<_> = std::fs::read_dir(&configs)
+            .unwrap()
+            .map(|entry| entry.unwrap().path())
+            .filter(|path| path.extension().is_some_and(|e| e == "toml"))
+            .collect();
+        presets.sort();
+        assert!(presets.len() >= 4, "presets found: {presets:?}");
+        for preset in &presets {
+            let config = TrainConfig::load(preset, &[]).unwrap_or_else(|e| panic!("{}: {e}", preset.display()));
+            config.validate().unwrap_or_else(|e| panic!("{}: {e}", preset.display()));
+            let text = std::fs::read_to_string(preset).unwrap();
+            for (number, line) in text.lines().enumerate() {
+                let code = line.split('#').next().unwrap_or("").trim();
+                let sets_a_key = code.contains('=') && !code.starts_with('[');
+                assert!(
+                    !sets_a_key || line.contains('#'),
+                    "{}:{}: `{code}` has no comment saying what it does",
+                    preset.display(),
+                    number + 1
+                );
+            }
+        }
+    }
+
     #[test]
     fn nan_infinity_and_overflow_are_refused_with_the_key_named() {
         for (assignment, key) in [
@@ -447,6 +476,8 @@ mod tests {
             ("env.start_joint1_deg=[0.0, nan]", "env.start_joint1_deg[1]"),
             ("exploration.base=nan", "exploration.base"),
             ("dqn.adam_eps=0.0", "dqn.adam_eps"),
+            ("env.max_tilt_deg=0.0", "env.max_tilt_deg"),
+            ("env.max_tilt_deg=nan", "env.max_tilt_deg"),
         ] {
             let err = TrainConfig::from_toml("", "test", &[assignment.into()]).unwrap_err().to_string();
             assert!(err.contains(key), "{assignment}: {err}");

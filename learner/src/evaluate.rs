@@ -5,7 +5,7 @@
 
 use std::path::{Path, PathBuf};
 
-use crawler_actor::env::{Crawler, EnvConfig, EpisodeSummary, OBS_DIM, PoseFrame};
+use crawler_actor::env::{Crawler, EnvConfig, EpisodeSummary, OBS_DIM, PoseFrame, Randomization};
 use crawler_actor::policy::{MlpPolicy, PolicyError};
 
 use crate::checkpoint::{self, CheckpointError, CheckpointMeta};
@@ -46,8 +46,11 @@ pub fn load_policy(path: &Path, overrides: &[String]) -> Result<LoadedPolicy, Ev
     Ok(LoadedPolicy { path: loaded.path, meta: loaded.meta, config, policy })
 }
 
-/// The env of `config` set to run exactly `seconds` of simulated time (the progress rule
-/// does not cut evaluation episodes short).
+/// The env of `config` set to run exactly `seconds` of simulated time on the nominal physics:
+/// neither the progress rule nor a fall (`max_tilt_deg`) cuts an evaluation episode short, so
+/// that falls are counted as flips and their cost shows in the speed, and the training's
+/// physics randomisation is off (`eval --perturbed` states its own), so that a number means
+/// the same robot whatever preset trained the policy.
 pub fn evaluation_env(config: &EnvConfig, seconds: f32) -> Result<EnvConfig, EvaluateError> {
     let steps = (seconds / config.dt).round();
     if !(steps >= 1.0 && steps <= u32::MAX as f32) {
@@ -59,6 +62,8 @@ pub fn evaluation_env(config: &EnvConfig, seconds: f32) -> Result<EnvConfig, Eva
     let mut env = config.clone();
     env.max_episode_steps = steps as u32;
     env.min_episode_steps = steps as u32;
+    env.max_tilt_deg = 180.0;
+    env.randomization = Randomization::default();
     Ok(env)
 }
 

@@ -20,7 +20,9 @@ pub use validate::{ProtoError, SequenceTracker, TransitionLimits};
 /// 3: the env settings carry the joint limits' softness (`EnvSettings.joint_limit_timeconst`)
 ///    and the physics randomisation; an older actor, which would silently simulate other
 ///    physics, is refused.
-pub const PROTOCOL_VERSION: u32 = 3;
+/// 4: the env settings carry the tilt that ends an episode (`EnvSettings.max_tilt_deg`); an
+///    older actor would read it as absent and never end an episode on a fall.
+pub const PROTOCOL_VERSION: u32 = 4;
 
 /// Largest encoded message a node accepts, in bytes. The largest legal messages: a batch of
 /// [`MAX_BATCH_TRANSITIONS`] transitions of 40 values (about 1.4 MB) and the weights of a

@@ -158,6 +158,9 @@ pub struct EnvSettings {
     /// Per-episode physics randomisation; absent: none.
     #[prost(message, optional, tag = "14")]
     pub randomization: Option<RandomizationSettings>,
+    /// Tilt from upright, in degrees, past which an episode terminates; 180: never.
+    #[prost(float, tag = "15")]
+    pub max_tilt_deg: f32,
 }
 
 /// Ranges drawn once per episode (`crawler_actor::env::Randomization` documents each); every

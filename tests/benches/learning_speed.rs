@@ -8,9 +8,15 @@
 //! `evaluations.json`; by default it lives in a temporary directory), `ACTORS` (local actor
 //! processes, default 2; an Ape-X ladder's `exploration.actors` should match, via `SET`).
 //! About every `EVAL_EVERY_S` seconds the newest checkpoint is run for 10 greedy episodes of
-//! 20 s (`eval`). Prints each evaluation, the wall time of training to the first evaluation
+//! 20 s (`eval`). Prints each evaluation (with its slowest episode and the episodes stuck
+//! below 0.05 m/s: a mean hides them), the wall time of training to the first evaluation
 //! ≥ 0.5 m/s, the speed at 20 and 60 minutes, and the env steps and updates done. Evaluation
 //! shares the machine with training, as a user's would.
+//!
+//! `MUJOCO=1` also plays checkpoints on the study's own MuJoCo model after training
+//! (`scripts/mujoco-check eval`, 10 greedy episodes of 20 s), one every `MUJOCO_EVERY_S`
+//! seconds of training (default 120) and the last, and prints the time to the first that
+//! crawls ≥ 0.5 m/s there without a flip: the transfer column of EXPERIMENTS.md.
 #![allow(clippy::print_stdout, clippy::unwrap_used)]
 
 use std::path::PathBuf;
@@ -31,7 +37,13 @@ struct Evaluation {
     physics_steps: u64,
     speed: f64,
     speed_std: f64,
+    min_speed: f64,
+    stuck_episodes: u64,
     flips: u64,
+    checkpoint: PathBuf,
+    /// The same checkpoint on the study's MuJoCo model (`MUJOCO=1`), as
+    /// `scripts/mujoco-check eval` summarises it.
+    mujoco: Option<serde_json::Value>,
 }
 
 fn evaluate(checkpoint: &PathBuf) -> Option<Evaluation> {
@@ -44,8 +56,65 @@ fn evaluate(checkpoint: &PathBuf) -> Option<Evaluation> {
         physics_steps: report["physics_steps"].as_u64()?,
         speed: report["speed"]["mean"].as_f64()?,
         speed_std: report["speed"]["std"].as_f64()?,
+        min_speed: report["min_speed"].as_f64()?,
+        stuck_episodes: report["stuck_episodes"].as_u64()?,
         flips: report["flips"].as_u64()?,
+        checkpoint: checkpoint.clone(),
+        mujoco: None,
     })
+}
+
+/// The summary of `scripts/mujoco-check eval` on `checkpoint`; on failure, why.
+fn evaluate_in_mujoco(checkpoint: &PathBuf) -> Result<serde_json::Value, String> {
+    let script = crawler_tests::repo_root().join("scripts/mujoco-check");
+    let output = Command::new(script).arg("eval").arg(checkpoint).output().map_err(|e| e.to_string())?;
+    if !output.status.success() {
+        return Err(String::from_utf8_lossy(&output.stderr).into_owned());
+    }
+    let report: serde_json::Value = serde_json::from_slice(&output.stdout).map_err(|e| e.to_string())?;
+    Ok(report["summary"].clone())
+}
+
+/// Plays every `every_s` seconds' checkpoint and the last in MuJoCo, printing each.
+fn cross_check_in_mujoco(evaluations: &mut [Evaluation], every_s: f64) {
+    println!("on the study's MuJoCo model (scripts/mujoco-check eval):");
+    println!("{:>8} {:>16} {:>9} {:>6} {:>6}", "train s", "speed m/s", "min", "stuck", "flips");
+    let last = evaluations.len().saturating_sub(1);
+    let mut last_checked = -f64::INFINITY;
+    for (index, evaluation) in evaluations.iter_mut().enumerate() {
+        if evaluation.train_seconds - last_checked < every_s && index != last {
+            continue;
+        }
+        last_checked = evaluation.train_seconds;
+        match evaluate_in_mujoco(&evaluation.checkpoint) {
+            Ok(summary) => {
+                let number = |key: &str| summary[key].as_f64().unwrap_or(f64::NAN);
+                println!(
+                    "{:>8.0} {:>9.3} ± {:.3} {:>9.3} {:>6} {:>6}",
+                    evaluation.train_seconds,
+                    number("mean_speed"),
+                    number("std_speed"),
+                    number("min_speed"),
+                    number("stuck_episodes"),
+                    number("flips")
+                );
+                evaluation.mujoco = Some(summary);
+            }
+            Err(why) => {
+                eprintln!("MuJoCo evaluation of {} failed: {why}", evaluation.checkpoint.display());
+                return;
+            }
+        }
+    }
+    let crawls = |e: &&Evaluation| {
+        e.mujoco
+            .as_ref()
+            .is_some_and(|m| m["mean_speed"].as_f64().is_some_and(|v| v >= 0.5) && m["flips"].as_u64() == Some(0))
+    };
+    match evaluations.iter().find(crawls) {
+        Some(e) => println!("first MuJoCo evaluation >= 0.5 m/s without a flip: {:.0} s of training", e.train_seconds),
+        None => println!("no MuJoCo evaluation reached 0.5 m/s without a flip"),
+    }
 }
 
 fn main() {
@@ -82,8 +151,8 @@ fn main() {
         "config {config}, seed {seed}, {minutes} min, {actors} actors, settings {settings:?}, init from {init_from:?}"
     );
     println!(
-        "{:>8} {:>10} {:>12} {:>14} {:>16} {:>6}",
-        "train s", "updates", "env steps", "physics steps", "speed m/s", "flips"
+        "{:>8} {:>10} {:>12} {:>14} {:>16} {:>6} {:>6} {:>6}",
+        "train s", "updates", "env steps", "physics steps", "speed m/s", "min", "stuck", "flips"
     );
     let mut evaluations: Vec<Evaluation> = Vec::new();
     let mut last_evaluated = -f64::INFINITY;
@@ -97,13 +166,15 @@ fn main() {
             && evaluations.last().is_none_or(|e| e.updates != evaluation.updates)
         {
             println!(
-                "{:>8.0} {:>10} {:>12} {:>14} {:>9.3} ± {:.3} {:>6}",
+                "{:>8.0} {:>10} {:>12} {:>14} {:>9.3} ± {:.3} {:>6.3} {:>6} {:>6}",
                 evaluation.train_seconds,
                 evaluation.updates,
                 evaluation.env_steps,
                 evaluation.physics_steps,
                 evaluation.speed,
                 evaluation.speed_std,
+                evaluation.min_speed,
+                evaluation.stuck_episodes,
                 evaluation.flips
             );
             last_evaluated = evaluation.train_seconds;
@@ -118,6 +189,9 @@ fn main() {
         }
         std::thread::sleep(Duration::from_secs(2));
     }
+    if env_or("MUJOCO", 0) == 1 {
+        cross_check_in_mujoco(&mut evaluations, env_or("MUJOCO_EVERY_S", 120.0));
+    }
     let first = evaluations.iter().find(|e| e.speed >= 0.5);
     match first {
         Some(e) => println!(
@@ -129,7 +203,10 @@ fn main() {
     for mark in [20.0, 60.0] {
         match evaluations.iter().rev().find(|e| e.train_seconds <= mark * 60.0 + 1.0) {
             Some(e) if minutes >= mark => {
-                println!("speed at {mark} min: {:.3} ± {:.3} m/s, {} flips", e.speed, e.speed_std, e.flips)
+                println!(
+                    "speed at {mark} min: {:.3} ± {:.3} m/s (min {:.3}, {} stuck), {} flips",
+                    e.speed, e.speed_std, e.min_speed, e.stuck_episodes, e.flips
+                )
             }
             _ => println!("speed at {mark} min: not reached (run with MINUTES={mark})"),
         }

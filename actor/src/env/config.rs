@@ -63,6 +63,12 @@ pub struct EnvConfig {
     /// this model scales the reference acceleration by the arm's inertia with the base held,
     /// MuJoCo by the smaller inertia the free base leaves, so its 0.02 s is softer than ours.
     pub joint_limit_timeconst: f32,
+    /// An episode terminates once the base tilts further than this from upright, in degrees
+    /// (the angle between its up axis and the world's). 180 never terminates: the study. A
+    /// smaller value ends episodes on a fall, as legged_gym does, so that a policy loses all
+    /// future reward by tipping over and learns a margin from it; a gait that only stays up
+    /// in one simulator's physics is what fails to transfer (EXPERIMENTS.md, "Fidelity").
+    pub max_tilt_deg: f32,
     /// Per-episode physics randomisation (off by default).
     pub randomization: Randomization,
 }
@@ -83,6 +89,7 @@ impl Default for EnvConfig {
             start_joint1_deg: [-45.0, 0.0],
             start_joint2_deg: [-22.5, 22.5],
             joint_limit_timeconst: 0.05,
+            max_tilt_deg: 180.0,
             randomization: Randomization::default(),
         }
     }
@@ -138,6 +145,13 @@ impl EnvConfig {
             "joint_limit_timeconst",
             timeconst,
             "0 (rigid limits) or a time constant in [0.001, 1] s",
+        )?;
+        let tilt = self.max_tilt_deg;
+        check(
+            tilt.is_finite() && tilt > 0.0 && tilt <= 180.0,
+            "max_tilt_deg",
+            tilt,
+            "an angle in (0, 180] degrees; 180 never terminates",
         )?;
         self.randomization.validate()?;
         for (key, range) in [("start_joint1_deg", self.start_joint1_deg), ("start_joint2_deg", self.start_joint2_deg)] {

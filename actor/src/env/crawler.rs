@@ -216,6 +216,10 @@ impl Crawler {
             reward.position += step_reward.position;
             reward.upright += step_reward.upright;
             self.track_flip();
+            if self.tilted_past_limit() {
+                outcome.terminated = true;
+                break;
+            }
 
             let steps = self.episode.physics_steps;
             if steps >= self.config.min_episode_steps {
@@ -308,6 +312,13 @@ impl Crawler {
                 None => joint.data.motor_axes.remove(JointAxesMask::ANG_X),
             }
         }
+    }
+
+    /// Whether the base tilts further from upright than `max_tilt_deg` allows.
+    fn tilted_past_limit(&self) -> bool {
+        let up = self.base_rotation() * Vector::Z;
+        // cos(180°) = −1: an up axis never points further down than that, so 180 never fires.
+        up.z < self.config.max_tilt_deg.to_radians().cos()
     }
 
     fn track_flip(&mut self) {
