@@ -47,15 +47,22 @@ fn is_tls_endpoint(endpoint: &str) -> bool {
 }
 
 /// Splits `--zenoh KEY=JSON5` arguments into pairs; the error names the bad argument.
-pub fn zenoh_overrides(pairs: &[String]) -> Result<Vec<(String, String)>, String> {
+pub fn zenoh_overrides(pairs: &[String]) -> Result<Vec<(String, String)>, ZenohOverrideError> {
     pairs
         .iter()
         .map(|pair| {
-            pair.split_once('=').map(|(k, v)| (k.trim().to_string(), v.trim().to_string())).ok_or_else(|| {
-                format!("--zenoh {pair:?}: expected KEY=JSON5, e.g. transport/link/tls/enable_mtls=true")
-            })
+            pair.split_once('=')
+                .map(|(k, v)| (k.trim().to_string(), v.trim().to_string()))
+                .ok_or_else(|| ZenohOverrideError { pair: pair.clone() })
         })
         .collect()
+}
+
+/// A `--zenoh` value that is not KEY=JSON5.
+#[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
+#[error("--zenoh {pair:?}: expected KEY=JSON5, e.g. transport/link/tls/enable_mtls=true")]
+pub struct ZenohOverrideError {
+    pub pair: String,
 }
 
 /// Which side of a TLS link a process is on: the learner listens, actors connect.
@@ -90,10 +97,23 @@ pub struct TlsArgs {
     pub tls_key: Option<std::path::PathBuf>,
 }
 
+/// TLS flags that cannot make a mutually authenticated link.
+#[derive(Debug, thiserror::Error)]
+pub enum TlsArgsError {
+    #[error("mutual TLS needs --tls-ca, --tls-cert and --tls-key together; missing {} (deploy/make-tls.sh makes all three)", .missing.join(", "))]
+    Incomplete { missing: Vec<&'static str> },
+    #[error("{flag} {}: {source}", .path.display())]
+    Unreadable { flag: &'static str, path: std::path::PathBuf, source: std::io::Error },
+    #[error("{flag} {}: not a PEM file (expected a -----BEGIN … block)", .path.display())]
+    NotPem { flag: &'static str, path: std::path::PathBuf },
+    #[error("{flag} {endpoint:?} is not a tls/ endpoint, but TLS material was given; use e.g. tls/HOST:7447")]
+    PlainEndpoint { flag: String, endpoint: String },
+}
+
 impl TlsArgs {
     /// All three paths or none: a half-configured link would silently fall back to no client
     /// certificate, so that is an error that says which flag is missing.
-    pub fn files(&self) -> Result<Option<TlsFiles>, String> {
+    pub fn files(&self) -> Result<Option<TlsFiles>, TlsArgsError> {
         match (&self.tls_ca, &self.tls_cert, &self.tls_key) {
             (None, None, None) => Ok(None),
             (Some(ca_certificate), Some(certificate), Some(private_key)) => {
@@ -106,28 +126,29 @@ impl TlsArgs {
                 Ok(Some(files))
             }
             (ca, cert, key) => {
-                let missing: Vec<&str> =
+                let missing: Vec<&'static str> =
                     [(ca.is_none(), "--tls-ca"), (cert.is_none(), "--tls-cert"), (key.is_none(), "--tls-key")]
                         .into_iter()
                         .filter_map(|(missing, flag)| missing.then_some(flag))
                         .collect();
-                Err(format!(
-                    "mutual TLS needs --tls-ca, --tls-cert and --tls-key together; missing {} (deploy/make-tls.sh makes all three)",
-                    missing.join(", ")
-                ))
+                Err(TlsArgsError::Incomplete { missing })
             }
         }
     }
 }
 
 impl TlsFiles {
-    fn check_readable(&self) -> Result<(), String> {
+    fn check_readable(&self) -> Result<(), TlsArgsError> {
         for (flag, path) in
             [("--tls-ca", &self.ca_certificate), ("--tls-cert", &self.certificate), ("--tls-key", &self.private_key)]
         {
-            let text = std::fs::read_to_string(path).map_err(|e| format!("{flag} {}: {e}", path.display()))?;
+            let text = std::fs::read_to_string(path).map_err(|source| TlsArgsError::Unreadable {
+                flag,
+                path: path.clone(),
+                source,
+            })?;
             if !text.contains("-----BEGIN ") {
-                return Err(format!("{flag} {}: not a PEM file (expected a -----BEGIN … block)", path.display()));
+                return Err(TlsArgsError::NotPem { flag, path: path.clone() });
             }
         }
         Ok(())
@@ -151,11 +172,9 @@ impl TlsFiles {
 
 /// Every endpoint must be a `tls/` one when TLS material is given: a `tcp/` endpoint beside
 /// it would carry the same traffic unauthenticated.
-pub fn check_tls_endpoints(endpoints: &[String], flag: &str) -> Result<(), String> {
+pub fn check_tls_endpoints(endpoints: &[String], flag: &str) -> Result<(), TlsArgsError> {
     match endpoints.iter().find(|e| !is_tls_endpoint(e)) {
-        Some(plain) => {
-            Err(format!("{flag} {plain:?} is not a tls/ endpoint, but TLS material was given; use e.g. tls/HOST:7447"))
-        }
+        Some(plain) => Err(TlsArgsError::PlainEndpoint { flag: flag.to_string(), endpoint: plain.clone() }),
         None => Ok(()),
     }
 }
@@ -170,10 +189,10 @@ mod tests {
 
     #[test]
     fn tls_flags_come_all_together_or_not_at_all() {
-        assert_eq!(flags(None, None, None).files(), Ok(None));
-        let error = flags(Some("ca.pem"), None, Some("a.key")).files().unwrap_err();
+        assert!(matches!(flags(None, None, None).files(), Ok(None)));
+        let error = flags(Some("ca.pem"), None, Some("a.key")).files().unwrap_err().to_string();
         assert!(error.contains("missing --tls-cert"), "{error}");
-        let error = flags(Some("/nonexistent/ca.pem"), Some("a"), Some("b")).files().unwrap_err();
+        let error = flags(Some("/nonexistent/ca.pem"), Some("a"), Some("b")).files().unwrap_err().to_string();
         assert!(error.contains("--tls-ca /nonexistent/ca.pem"), "{error}");
     }
 
@@ -186,7 +205,7 @@ mod tests {
         std::fs::write(&pem, "-----BEGIN CERTIFICATE-----\nAA==\n-----END CERTIFICATE-----\n").unwrap();
         std::fs::write(&junk, "not a key").unwrap();
         let (pem_path, junk_path) = (pem.to_str().unwrap(), junk.to_str().unwrap());
-        let error = flags(Some(pem_path), Some(pem_path), Some(junk_path)).files().unwrap_err();
+        let error = flags(Some(pem_path), Some(pem_path), Some(junk_path)).files().unwrap_err().to_string();
         assert!(error.starts_with("--tls-key") && error.contains("not a PEM file"), "{error}");
         let files = flags(Some(pem_path), Some(pem_path), Some(pem_path)).files().unwrap().unwrap();
         let settings = files.zenoh_settings(TlsSide::Connect);
@@ -198,7 +217,7 @@ mod tests {
     #[test]
     fn plain_endpoints_beside_tls_material_are_refused() {
         assert!(check_tls_endpoints(&["tls/learner:7447".into()], "--connect").is_ok());
-        let error = check_tls_endpoints(&["tls/a:1".into(), "tcp/b:2".into()], "--connect").unwrap_err();
+        let error = check_tls_endpoints(&["tls/a:1".into(), "tcp/b:2".into()], "--connect").unwrap_err().to_string();
         assert!(error.contains("\"tcp/b:2\""), "{error}");
     }
 }

@@ -20,7 +20,7 @@ use tracing::{debug, info, warn};
 use zenoh::qos::CongestionControl;
 
 use crate::env::{OBS_DIM, VecEnv};
-use crate::policy::{MlpPolicy, NetworkSpec};
+use crate::policy::{MlpPolicy, NetworkSpec, PolicyError};
 use crate::settings::ActorSettings;
 
 /// How to run an actor.
@@ -46,10 +46,24 @@ pub struct ActorOptions {
 pub enum NodeError {
     #[error("zenoh: {context}: {message}")]
     Zenoh { context: String, message: String },
-    #[error("the run's actor settings are unusable: {0}")]
-    Settings(String),
-    #[error("weights: {0}")]
-    Weights(String),
+    #[error("the run id is not usable: {0}")]
+    RunId(#[source] proto::ProtoError),
+    #[error("the learner assigned no actor id: pass --id N")]
+    NoActorId,
+    #[error("stopped before a learner answered")]
+    StoppedBeforeLearnerAnswered,
+    #[error("cannot start the simulation thread: {0}")]
+    SimulationThread(#[source] std::io::Error),
+    #[error("the simulation thread panicked; the log above says where")]
+    SimulationPanicked,
+    #[error("weights rejected: {0}")]
+    WeightsRejected(#[source] proto::ProtoError),
+    #[error("weights carry no network spec")]
+    WeightsWithoutNetwork,
+    #[error("weights of a {found_obs}→{found_actions} network do not fit this environment's {obs}→{actions}")]
+    WeightsShape { found_obs: usize, found_actions: usize, obs: usize, actions: usize },
+    #[error("weights unusable: {0}")]
+    Policy(#[from] PolicyError),
 }
 
 fn zenoh_error(context: impl Into<String>) -> impl FnOnce(zenoh::Error) -> NodeError {
@@ -132,7 +146,7 @@ pub async fn run(mut options: ActorOptions, stop: Arc<AtomicBool>) -> Result<(),
 
     let (run_id, settings, assigned) =
         fetch_run_info(&session, options.run.as_deref(), options.id.is_none(), &stop).await?;
-    let id = options.id.or(assigned).ok_or_else(|| NodeError::Settings("the learner assigned no actor id".into()))?;
+    let id = options.id.or(assigned).ok_or(NodeError::NoActorId)?;
     options.id = Some(id);
     info!(run = %run_id, id, envs = settings.envs_per_actor, evaluator = options.evaluator, "joined run");
     let spec =
@@ -230,7 +244,7 @@ pub async fn run(mut options: ActorOptions, stop: Arc<AtomicBool>) -> Result<(),
         std::thread::Builder::new()
             .name("simulation".into())
             .spawn(move || simulate(&options, &run_id, &settings, policy_rx, &out_tx, &stop, &counters))
-            .map_err(|e| NodeError::Settings(format!("cannot start the simulation thread: {e}")))?
+            .map_err(NodeError::SimulationThread)?
     };
 
     let mut ticker = tokio::time::interval(Duration::from_secs_f64(settings.status_interval_s));
@@ -278,7 +292,7 @@ pub async fn run(mut options: ActorOptions, stop: Arc<AtomicBool>) -> Result<(),
     let _ = session.close().await;
     match result {
         Ok(()) => Ok(()),
-        Err(_) => Err(NodeError::Settings("the simulation thread panicked".into())),
+        Err(_) => Err(NodeError::SimulationPanicked),
     }
 }
 
@@ -298,7 +312,7 @@ async fn fetch_run_info(
 ) -> Result<(String, ActorSettings, Option<u32>), NodeError> {
     let key = match run {
         Some(run) => {
-            keys::check_run_id(run).map_err(|e| NodeError::Settings(e.to_string()))?;
+            keys::check_run_id(run).map_err(NodeError::RunId)?;
             keys::info(run)
         }
         None => keys::info("*"),
@@ -339,22 +353,22 @@ async fn fetch_run_info(
         }
         tokio::time::sleep(Duration::from_millis(250)).await;
     }
-    Err(NodeError::Settings("stopped before a learner answered".into()))
+    Err(NodeError::StoppedBeforeLearnerAnswered)
 }
 
 fn load_weights(bytes: &[u8], run_id: &str, expected: &NetworkSpec) -> Result<LoadedPolicy, NodeError> {
-    let weights = proto::validate::weights(bytes, run_id).map_err(|e| NodeError::Weights(e.to_string()))?;
+    let weights = proto::validate::weights(bytes, run_id).map_err(NodeError::WeightsRejected)?;
     // Validation guarantees a network spec within the protocol's size limits.
-    let spec =
-        weights.network.as_ref().map(NetworkSpec::from).ok_or_else(|| NodeError::Weights("no network".into()))?;
+    let spec = weights.network.as_ref().map(NetworkSpec::from).ok_or(NodeError::WeightsWithoutNetwork)?;
     if spec.obs_dim != expected.obs_dim || spec.num_actions != expected.num_actions {
-        return Err(NodeError::Weights(format!(
-            "network {}→{} does not fit this environment's {}→{}",
-            spec.obs_dim, spec.num_actions, expected.obs_dim, expected.num_actions
-        )));
+        return Err(NodeError::WeightsShape {
+            found_obs: spec.obs_dim,
+            found_actions: spec.num_actions,
+            obs: expected.obs_dim,
+            actions: expected.num_actions,
+        });
     }
-    let policy =
-        MlpPolicy::from_safetensors(&weights.safetensors, &spec).map_err(|e| NodeError::Weights(e.to_string()))?;
+    let policy = MlpPolicy::from_safetensors(&weights.safetensors, &spec)?;
     Ok(LoadedPolicy { session: weights.learner_session, version: weights.version, policy })
 }
 

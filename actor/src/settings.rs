@@ -17,8 +17,8 @@ pub enum SettingsError {
     Field { field: &'static str, value: String, allowed: &'static str },
     #[error(transparent)]
     Env(#[from] crate::env::EnvConfigError),
-    #[error("{0}")]
-    Invalid(String),
+    #[error("exploration {exploration:?} is invalid: {allowed}")]
+    Exploration { exploration: Exploration, allowed: &'static str },
 }
 
 /// How actors explore.
@@ -49,28 +49,19 @@ impl Exploration {
         }
     }
 
-    pub fn validate(&self) -> Result<(), String> {
-        match *self {
-            Exploration::Ladder { base, alpha, actors } => {
-                if !(0.0..=1.0).contains(&base) || !alpha.is_finite() || alpha < 0.0 || actors == 0 {
-                    return Err(format!(
-                        "exploration ladder base = {base}, alpha = {alpha}, actors = {actors}: need base in [0, 1], alpha ≥ 0, actors ≥ 1"
-                    ));
-                }
-            }
-            Exploration::Decay { start, factor, every, min } => {
-                let ok = (0.0..=1.0).contains(&start)
-                    && (0.0..=1.0).contains(&factor)
-                    && (0.0..=1.0).contains(&min)
-                    && every > 0;
-                if !ok {
-                    return Err(format!(
-                        "exploration decay start = {start}, factor = {factor}, every = {every}, min = {min}: need start, factor, min in [0, 1] and every ≥ 1"
-                    ));
-                }
-            }
-        }
-        Ok(())
+    /// Checks the schedule's parameters.
+    pub fn validate(&self) -> Result<(), SettingsError> {
+        let (ok, allowed) = match *self {
+            Exploration::Ladder { base, alpha, actors } => (
+                (0.0..=1.0).contains(&base) && alpha.is_finite() && alpha >= 0.0 && actors > 0,
+                "a ladder needs base in [0, 1], alpha ≥ 0 and actors ≥ 1",
+            ),
+            Exploration::Decay { start, factor, every, min } => (
+                [start, factor, min].iter().all(|v| (0.0..=1.0).contains(v)) && every > 0,
+                "a decay needs start, factor and min in [0, 1] and every ≥ 1",
+            ),
+        };
+        if ok { Ok(()) } else { Err(SettingsError::Exploration { exploration: self.clone(), allowed }) }
     }
 }
 
@@ -104,28 +95,25 @@ impl Default for ActorSettings {
 }
 
 impl ActorSettings {
-    pub fn validate(&self) -> Result<(), String> {
-        self.env.validate().map_err(|e| e.to_string())?;
+    /// Checks every setting; the error names the field.
+    pub fn validate(&self) -> Result<(), SettingsError> {
+        self.env.validate()?;
         self.exploration.validate()?;
+        let field = |field: &'static str, value: &dyn std::fmt::Display, allowed: &'static str| SettingsError::Field {
+            field,
+            value: value.to_string(),
+            allowed,
+        };
         if !(1..=1024).contains(&self.envs_per_actor) {
-            return Err(format!("actor.envs_per_actor = {} is invalid: an integer in 1..=1024", self.envs_per_actor));
+            return Err(field("actor.envs_per_actor", &self.envs_per_actor, "an integer in 1..=1024"));
         }
         if !(1..=4096).contains(&self.batch_transitions) {
-            return Err(format!(
-                "actor.batch_transitions = {} is invalid: an integer in 1..=4096",
-                self.batch_transitions
-            ));
+            return Err(field("actor.batch_transitions", &self.batch_transitions, "an integer in 1..=4096"));
         }
         if !(self.status_interval_s.is_finite() && self.status_interval_s > 0.0) {
-            return Err(format!("actor.status_interval_s = {} is invalid: a positive number", self.status_interval_s));
+            return Err(field("actor.status_interval_s", &self.status_interval_s, "a positive number of seconds"));
         }
         Ok(())
-    }
-
-    /// Checks the settings, as a typed error.
-    pub fn check(&self) -> Result<(), SettingsError> {
-        self.env.validate()?;
-        self.validate().map_err(SettingsError::Invalid)
     }
 
     /// Seeds of actor `actor`'s crawlers.
@@ -284,7 +272,7 @@ impl TryFrom<&proto::ActorSettings> for ActorSettings {
             seed: wire.seed,
             status_interval_s: wire.status_interval_s,
         };
-        settings.check()?;
+        settings.validate()?;
         Ok(settings)
     }
 }

@@ -24,7 +24,7 @@ use safetensors::{Dtype, SafeTensors};
 use serde::{Deserialize, Serialize};
 
 use crate::dqn::Dqn;
-use crate::network::QNetwork;
+use crate::network::{ParameterCountError, QNetwork};
 use crate::replay::Replay;
 
 /// Version of this on-disk layout.
@@ -411,7 +411,7 @@ impl Dqn {
     /// the optimiser and the update count stay fresh. The network spec must match.
     pub fn initialise_from(&mut self, checkpoint: &Checkpoint) -> Result<(), CheckpointError> {
         self.check_network(checkpoint)?;
-        let bad = |e: String| corrupt(&checkpoint.path, e);
+        let bad = |e: ParameterCountError| corrupt(&checkpoint.path, e);
         self.online.load_flat(&checkpoint.online).map_err(bad)?;
         self.target.load_flat(&checkpoint.target).map_err(bad)?;
         Ok(())

@@ -21,6 +21,8 @@ pub enum ConfigError {
     Override(String),
     #[error("{key} = {value} is invalid: {allowed}")]
     Invalid { key: String, value: String, allowed: String },
+    #[error(transparent)]
+    Actor(#[from] crawler_actor::settings::SettingsError),
     #[error("{what} would need {needed_mib} MiB, more than this machine's {total_mib} MiB of memory: lower {key}")]
     TooLarge { what: &'static str, key: &'static str, needed_mib: u64, total_mib: u64 },
 }
@@ -232,7 +234,7 @@ impl TrainConfig {
             allowed: allowed.to_string(),
         };
         self.env.validate().map_err(|e| invalid(&format!("env.{}", e.key), e.value, e.allowed))?;
-        self.actor_settings().validate().map_err(|e| invalid("actor", String::new(), &e))?;
+        self.actor_settings().validate()?;
         let d = &self.dqn;
         if !(d.gamma > 0.0 && d.gamma <= 1.0) {
             return Err(invalid("dqn.gamma", d.gamma.to_string(), "a number in (0, 1]"));
@@ -265,7 +267,7 @@ impl TrainConfig {
         }
         self.network_spec()
             .validate()
-            .map_err(|e| invalid("network.hidden", format!("{:?}", self.network.hidden), &e))?;
+            .map_err(|e| invalid("network.hidden", format!("{:?}", self.network.hidden), &e.to_string()))?;
         if self.replay.capacity < 2 * d.batch_size {
             return Err(invalid("replay.capacity", self.replay.capacity.to_string(), "at least twice dqn.batch_size"));
         }

@@ -21,8 +21,10 @@ pub enum EvaluateError {
     Io { path: PathBuf, source: std::io::Error },
     #[error("the checkpoint's weights do not fit its network: {0}")]
     Policy(#[from] PolicyError),
-    #[error("{0}")]
-    Episode(String),
+    #[error("{seconds} s is not a usable episode length at dt = {dt} s")]
+    EpisodeLength { seconds: f32, dt: f32 },
+    #[error("the policy chose no action")]
+    NoAction,
 }
 
 /// A checkpoint ready to act: its config (with overrides applied) and its greedy policy.
@@ -54,10 +56,7 @@ pub fn load_policy(path: &Path, overrides: &[String]) -> Result<LoadedPolicy, Ev
 pub fn evaluation_env(config: &EnvConfig, seconds: f32) -> Result<EnvConfig, EvaluateError> {
     let steps = (seconds / config.dt).round();
     if !(steps >= 1.0 && steps <= u32::MAX as f32) {
-        return Err(EvaluateError::Episode(format!(
-            "{seconds} s is not a usable episode length at dt = {} s",
-            config.dt
-        )));
+        return Err(EvaluateError::EpisodeLength { seconds, dt: config.dt });
     }
     let mut env = config.clone();
     env.max_episode_steps = steps as u32;
@@ -82,7 +81,7 @@ pub fn greedy_episode(
     loop {
         crawler.observe(&mut observation);
         policy.greedy_actions(&observation, &mut actions)?;
-        let action = *actions.first().ok_or_else(|| EvaluateError::Episode("the policy chose no action".into()))?;
+        let action = *actions.first().ok_or(EvaluateError::NoAction)?;
         let outcome = crawler.step(action);
         if outcome.done() {
             let summary = crawler.episode_summary(Some(outcome));

@@ -12,6 +12,15 @@
 use crawler_actor::policy::{NetworkSpec, ParamInfo};
 use tch::{Kind, Tensor};
 
+/// Parameters that do not fit the network they are meant for.
+#[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
+#[error("{found} parameter values ({kind}) given; the network needs {expected} f32")]
+pub struct ParameterCountError {
+    pub found: usize,
+    pub kind: String,
+    pub expected: usize,
+}
+
 /// Parameter `info` lives at `offset..offset + info.numel()` of the flat buffer.
 #[derive(Debug, Clone)]
 pub struct ParamSlot {
@@ -63,15 +72,11 @@ impl QNetwork {
     }
 
     /// A network over an existing flat parameter tensor of the right length.
-    pub fn from_flat(spec: &NetworkSpec, flat: Tensor) -> Result<Self, String> {
+    pub fn from_flat(spec: &NetworkSpec, flat: Tensor) -> Result<Self, ParameterCountError> {
         let slots = slots_of(spec);
         let expected = spec.num_params();
         if flat.numel() != expected || flat.kind() != Kind::Float {
-            return Err(format!(
-                "flat tensor has {} {:?} values; the network needs {expected} f32",
-                flat.numel(),
-                flat.kind()
-            ));
+            return Err(ParameterCountError { found: flat.numel(), kind: format!("{:?}", flat.kind()), expected });
         }
         let params = param_views(&flat, &slots, false);
         Ok(Self { spec: spec.clone(), slots, flat, params })
@@ -160,10 +165,10 @@ impl QNetwork {
     }
 
     /// Overwrites all parameters from a flat vector in slot order.
-    pub fn load_flat(&mut self, values: &[f32]) -> Result<(), String> {
+    pub fn load_flat(&mut self, values: &[f32]) -> Result<(), ParameterCountError> {
         let expected = self.flat.numel();
         if values.len() != expected {
-            return Err(format!("{} parameter values given; the network has {expected}", values.len()));
+            return Err(ParameterCountError { found: values.len(), kind: "f32".into(), expected });
         }
         tch::no_grad(|| self.flat.copy_(&Tensor::from_slice(values)));
         Ok(())

@@ -41,8 +41,20 @@ pub enum ServiceError {
     Zenoh { context: String, message: String },
     #[error(transparent)]
     Checkpoint(#[from] CheckpointError),
-    #[error("{0}")]
-    Setup(String),
+    #[error("the run id is not usable: {0}")]
+    RunId(#[source] proto::ProtoError),
+    #[error("cannot create the run directory {path}: {source}")]
+    RunDir { path: PathBuf, source: std::io::Error },
+    #[error("the config cannot be written into checkpoints as JSON: {0}")]
+    ConfigJson(#[from] serde_json::Error),
+    #[error("cannot set up the replay buffer: {0}")]
+    Replay(#[from] crate::replay::ReplayError),
+    #[error("cannot open the run's metrics files: {0}")]
+    Metrics(#[from] crate::metrics::MetricsError),
+    #[error("cannot start the training thread: {0}")]
+    TrainingThread(#[source] std::io::Error),
+    #[error("the training thread panicked; the log above says where")]
+    TrainingThreadPanicked,
 }
 
 fn zenoh_error(context: impl Into<String>) -> impl FnOnce(zenoh::Error) -> ServiceError {
@@ -239,9 +251,8 @@ pub struct Outcome {
 /// Opens the router, serves the run, trains until `stop` or a configured limit.
 pub async fn run(options: ServiceOptions, stop: Arc<AtomicBool>) -> Result<Outcome, ServiceError> {
     let ServiceOptions { config, run_id, run_dir, resume, init_from, identity, zenoh_overrides } = options;
-    keys::check_run_id(&run_id).map_err(|e| ServiceError::Setup(e.to_string()))?;
-    std::fs::create_dir_all(&run_dir)
-        .map_err(|e| ServiceError::Setup(format!("cannot create {}: {e}", run_dir.display())))?;
+    keys::check_run_id(&run_id).map_err(ServiceError::RunId)?;
+    std::fs::create_dir_all(&run_dir).map_err(|source| ServiceError::RunDir { path: run_dir.clone(), source })?;
     crate::set_torch_threads(config.learner.threads);
     crate::tune_allocator();
 
@@ -370,14 +381,14 @@ pub async fn run(options: ServiceOptions, stop: Arc<AtomicBool>) -> Result<Outco
                 let start = Start { resume, init_from };
                 train(&config, &run_id, &run_dir, start, &ingest_rx, &weights_tx, &shared, &stop)
             })
-            .map_err(|e| ServiceError::Setup(format!("cannot start the training thread: {e}")))?
+            .map_err(ServiceError::TrainingThread)?
     };
     while let Some(bytes) = weights_rx.recv().await {
         if let Err(e) = weights_publisher.put(bytes).await {
             warn!("weights publish failed: {e}");
         }
     }
-    let outcome = trainer.join().map_err(|_| ServiceError::Setup("the training thread panicked".into()))??;
+    let outcome = trainer.join().map_err(|_| ServiceError::TrainingThreadPanicked)??;
 
     // Tell every node of the run to exit; repeat briefly so late subscribers hear it too.
     let control = proto::Control {
@@ -610,7 +621,7 @@ fn train(
     stop: &AtomicBool,
 ) -> Result<Outcome, ServiceError> {
     let checkpoint_dir = run_dir.join("checkpoints");
-    let config_json = serde_json::to_value(config).map_err(|e| ServiceError::Setup(e.to_string()))?;
+    let config_json = serde_json::to_value(config)?;
     let mut dqn = Dqn::new(config.dqn_config());
     let mut progress = Progress::default();
     let mut replay = None;
@@ -637,8 +648,7 @@ fn train(
     progress.learner_session = (progress.learner_session + 1).max(now_ms);
     let mut replay = match replay {
         Some(r) if r.config() == &config.replay => r,
-        _ => Replay::new(config.replay.clone(), crawler_actor::env::OBS_DIM)
-            .map_err(|e| ServiceError::Setup(e.to_string()))?,
+        _ => Replay::new(config.replay.clone(), crawler_actor::env::OBS_DIM)?,
     };
     let mut rate = RateLimiter::new(config.rate);
     rate.reset(replay.len());
@@ -654,7 +664,7 @@ fn train(
     let mut status_clock = Instant::now();
     let mut status_counts = (progress.updates, progress.env_steps);
     let mut actor_transitions: BTreeMap<u32, u64> = BTreeMap::new();
-    let mut metrics = MetricsWriter::create(run_dir).map_err(|e| ServiceError::Setup(e.to_string()))?;
+    let mut metrics = MetricsWriter::create(run_dir)?;
     let mut metrics_clock = Instant::now();
     let mut losses = LossAverage::default();
 

@@ -60,12 +60,12 @@ fn main() -> anyhow::Result<()> {
     let args = Args::parse();
     crawler_actor::cli::serialize_tls_link_io(&args.connect);
     let mut zenoh_overrides = Vec::new();
-    if let Some(tls) = args.tls.files().map_err(anyhow::Error::msg)? {
-        check_tls_endpoints(&args.connect, "--connect").map_err(anyhow::Error::msg)?;
+    if let Some(tls) = args.tls.files()? {
+        check_tls_endpoints(&args.connect, "--connect")?;
         zenoh_overrides.extend(tls.zenoh_settings(TlsSide::Connect));
     }
     // Explicit --zenoh settings come last, so they win.
-    zenoh_overrides.extend(crawler_actor::cli::zenoh_overrides(&args.zenoh).map_err(anyhow::Error::msg)?);
+    zenoh_overrides.extend(crawler_actor::cli::zenoh_overrides(&args.zenoh)?);
     let options = ActorOptions {
         connect: args.connect,
         id: match args.id {

@@ -2,7 +2,7 @@
 
 use safetensors::{Dtype, SafeTensors};
 
-use super::spec::NetworkSpec;
+use super::spec::{NetworkSpec, SpecError};
 
 /// Why weights could not be loaded or used.
 #[derive(Debug, thiserror::Error)]
@@ -10,7 +10,9 @@ pub enum PolicyError {
     #[error("weights are not a valid safetensors file: {0}")]
     Format(#[from] safetensors::SafeTensorError),
     #[error("network spec is invalid: {0}")]
-    Spec(String),
+    Spec(#[from] SpecError),
+    #[error("the weights end before parameter {index} of the {expected} the network spec lists")]
+    TooFewParameters { index: usize, expected: usize },
     #[error("weights lack tensor `{0}` that the network spec requires")]
     Missing(String),
     #[error("tensor `{name}` has dtype {dtype} and shape {shape:?}; expected F32 with shape {expected:?}")]
@@ -46,9 +48,11 @@ pub struct MlpPolicy {
 impl MlpPolicy {
     /// Loads weights named as [`NetworkSpec::params`] lists them.
     pub fn from_safetensors(bytes: &[u8], spec: &NetworkSpec) -> Result<Self, PolicyError> {
-        spec.validate().map_err(PolicyError::Spec)?;
+        spec.validate()?;
         let tensors = SafeTensors::deserialize(bytes)?;
-        let mut values = spec.params().into_iter().map(|info| {
+        let params = spec.params();
+        let expected = params.len();
+        let mut values = params.into_iter().map(|info| {
             let view = tensors.tensor(&info.name).map_err(|_| PolicyError::Missing(info.name.clone()))?;
             if view.dtype() != Dtype::F32 || view.shape() != info.shape.as_slice() {
                 return Err(PolicyError::Mismatch {
@@ -65,7 +69,11 @@ impl MlpPolicy {
             }
             Ok(data)
         });
-        let mut next = || values.next().unwrap_or_else(|| Err(PolicyError::Spec("too few parameters".into())));
+        let mut index = 0;
+        let mut next = || {
+            index += 1;
+            values.next().unwrap_or(Err(PolicyError::TooFewParameters { index: index - 1, expected }))
+        };
         let mut layers = Vec::new();
         let mut inputs = spec.obs_dim;
         for &width in &spec.hidden {

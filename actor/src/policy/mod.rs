@@ -10,4 +10,4 @@ pub use spec::ParamInfo;
 
 pub use exploration::{EpsilonDecay, apex_epsilon};
 pub use mlp::{MlpPolicy, PolicyError};
-pub use spec::NetworkSpec;
+pub use spec::{NetworkSpec, SpecError};

@@ -96,18 +96,32 @@ impl NetworkSpec {
     }
 
     /// Checks that every size is usable.
-    pub fn validate(&self) -> Result<(), String> {
+    pub fn validate(&self) -> Result<(), SpecError> {
         if self.obs_dim == 0 || self.num_actions == 0 {
-            return Err(format!("obs_dim ({}) and num_actions ({}) must be positive", self.obs_dim, self.num_actions));
+            return Err(SpecError::Empty { obs_dim: self.obs_dim, num_actions: self.num_actions });
         }
-        if self.hidden.iter().any(|&w| w == 0 || w > 65_536) {
-            return Err(format!("hidden widths {:?} must each be in 1..=65536", self.hidden));
+        if self.hidden.iter().any(|&w| w == 0 || w > MAX_HIDDEN_WIDTH) {
+            return Err(SpecError::HiddenWidth(self.hidden.clone()));
         }
         // The same limits as the wire's: weights must fit in one message, so no declared shape
         // (a config, a checkpoint's meta.json) makes anyone allocate more.
         let wire = crawler_proto::NetworkSpec::from(self);
-        crawler_proto::validate::network_spec(&wire).map_err(|e| e.to_string())
+        crawler_proto::validate::network_spec(&wire).map_err(SpecError::Wire)
     }
+}
+
+/// Widest hidden layer a spec may declare.
+const MAX_HIDDEN_WIDTH: usize = 65_536;
+
+/// A network shape no one should build.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+pub enum SpecError {
+    #[error("obs_dim ({obs_dim}) and num_actions ({num_actions}) must be positive")]
+    Empty { obs_dim: usize, num_actions: usize },
+    #[error("hidden widths {0:?} must each be in 1..={MAX_HIDDEN_WIDTH}")]
+    HiddenWidth(Vec<usize>),
+    #[error("the network does not fit the wire protocol's limits: {0}")]
+    Wire(#[source] crawler_proto::ProtoError),
 }
 
 #[cfg(test)]

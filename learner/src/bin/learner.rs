@@ -101,8 +101,8 @@ fn main() -> anyhow::Result<()> {
     crawler_actor::cli::serialize_tls_link_io(&config.learner.listen);
     let mut zenoh_overrides = Vec::new();
     let mut identity = access_control::Identity::None;
-    if let Some(tls) = args.tls.files().map_err(anyhow::Error::msg)? {
-        check_tls_endpoints(&config.learner.listen, "learner.listen").map_err(anyhow::Error::msg)?;
+    if let Some(tls) = args.tls.files()? {
+        check_tls_endpoints(&config.learner.listen, "learner.listen")?;
         if args.actors > 0 {
             bail!(
                 "with mutual TLS the learner starts no local actors (they would need certificates of their own): \
@@ -128,7 +128,7 @@ fn main() -> anyhow::Result<()> {
              and feed replay; use mutual TLS on untrusted networks"
         );
     }
-    zenoh_overrides.extend(crawler_actor::cli::zenoh_overrides(&args.zenoh).map_err(anyhow::Error::msg)?);
+    zenoh_overrides.extend(crawler_actor::cli::zenoh_overrides(&args.zenoh)?);
     let init_from = match &args.init_from {
         Some(path) => {
             let checkpoint = checkpoint::load(path).with_context(|| format!("--init-from {}", path.display()))?;

@@ -108,10 +108,10 @@ fn main() -> anyhow::Result<()> {
 
 async fn run(args: Args) -> anyhow::Result<()> {
     let mut overrides = Vec::new();
-    if let Some(tls) = args.tls.files().map_err(anyhow::Error::msg)? {
+    if let Some(tls) = args.tls.files()? {
         overrides.extend(tls.zenoh_settings(TlsSide::Connect));
     }
-    overrides.extend(crawler_actor::cli::zenoh_overrides(&args.zenoh).map_err(anyhow::Error::msg)?);
+    overrides.extend(crawler_actor::cli::zenoh_overrides(&args.zenoh)?);
     let config = crawler_actor::node::client_config(std::slice::from_ref(&args.connect), &overrides)?;
     let session = zenoh::open(config).await.map_err(|e| anyhow::anyhow!("opening a zenoh session: {e}"))?;
     match args.mode {
