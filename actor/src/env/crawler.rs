@@ -215,8 +215,7 @@ impl Crawler {
             let step_reward = Reward { position: position_reward(dx), upright: upright_reward(self.base_rotation()) };
             reward.position += step_reward.position;
             reward.upright += step_reward.upright;
-            self.track_flip();
-            if self.tilted_past_limit() {
+            if self.track_tilt() {
                 outcome.terminated = true;
                 break;
             }
@@ -314,20 +313,17 @@ impl Crawler {
         }
     }
 
-    /// Whether the base tilts further from upright than `max_tilt_deg` allows.
-    fn tilted_past_limit(&self) -> bool {
-        let up = self.base_rotation() * Vector::Z;
-        // cos(180°) = −1: an up axis never points further down than that, so 180 never fires.
-        up.z < self.config.max_tilt_deg.to_radians().cos()
-    }
-
-    fn track_flip(&mut self) {
+    /// Counts a flip when the base turns upside down, and returns whether it tilts further
+    /// from upright than `max_tilt_deg` allows: both read the one up axis of this step.
+    fn track_tilt(&mut self) -> bool {
         let up = self.base_rotation() * Vector::Z;
         let flipped = up.z < 0.0;
         if flipped && !self.episode.flipped {
             self.episode.flips += 1;
         }
         self.episode.flipped = flipped;
+        // cos(180°) = −1: an up axis never points further down than that, so 180 never fires.
+        up.z < self.config.max_tilt_deg.to_radians().cos()
     }
 
     /// Reads the normal forces at the touch sites from the last contact solve.
