@@ -2,7 +2,6 @@
 //! Q-network in plain Rust ([`policy`]), and the zenoh client that feeds the learner
 //! ([`node`]). Nothing here links libtorch.
 
-pub mod cli;
 pub mod env;
 pub mod node;
 pub mod policy;

@@ -19,7 +19,7 @@ use tokio::sync::{mpsc, watch};
 use tracing::{debug, info, warn};
 use zenoh::qos::CongestionControl;
 
-use crate::env::{OBS_DIM, VecEnv};
+use crate::env::{EpisodeSummary, OBS_DIM, VecEnv};
 use crate::policy::{MlpPolicy, NetworkSpec, PolicyError};
 use crate::settings::ActorSettings;
 
@@ -129,56 +129,143 @@ struct Counters {
 
 /// Runs an actor until the learner says stop, `stop` is set, or `max_steps` is reached.
 pub async fn run(mut options: ActorOptions, stop: Arc<AtomicBool>) -> Result<(), NodeError> {
-    let config = client_config(&options.connect, &options.zenoh_overrides)?;
-    info!(endpoints = ?options.connect, id = ?options.id, "connecting to the learner");
-    // With connect/timeout_ms = -1, opening waits for the learner forever, and its future
-    // blocks the thread that polls it; open on a blocking thread so a signal can end the wait.
-    let opening = tokio::task::spawn_blocking(move || zenoh::Wait::wait(zenoh::open(config)));
-    let session = tokio::select! {
-        session = opening => session
-            .map_err(|e| NodeError::Zenoh { context: "opening the session".into(), message: e.to_string() })?
-            .map_err(zenoh_error("opening the session"))?,
-        () = stopped(&stop) => {
-            info!("stopped before reaching a learner");
-            return Ok(());
-        }
+    let Some(session) = connect(&options, &stop).await? else {
+        info!("stopped before reaching a learner");
+        return Ok(());
     };
-
     let (run_id, settings, assigned) =
         fetch_run_info(&session, options.run.as_deref(), options.id.is_none(), &stop).await?;
     let id = options.id.or(assigned).ok_or(NodeError::NoActorId)?;
     options.id = Some(id);
     info!(run = %run_id, id, envs = settings.envs_per_actor, evaluator = options.evaluator, "joined run");
-    let spec =
-        NetworkSpec { obs_dim: OBS_DIM, hidden: vec![], num_actions: settings.env.num_actions(), layer_norm: true };
 
-    let (policy_tx, policy_rx) = watch::channel::<Option<Arc<LoadedPolicy>>>(None);
-    let policy_tx = Arc::new(policy_tx);
-    let accept_weights = {
-        let policy_tx = Arc::clone(&policy_tx);
-        let run_id = run_id.clone();
-        let expected = spec.clone();
-        move |bytes: &[u8]| match load_weights(bytes, &run_id, &expected) {
+    let (weights, policy_rx) = WeightsFeed::new(&run_id, settings.env.num_actions());
+    let _subscriptions = subscribe(&session, &run_id, &weights, &stop, &options).await?;
+    weights.wait_for_first(&session, &policy_rx, &stop).await;
+    let publishers = Publishers::declare(&session, &run_id, id).await?;
+
+    let counters = Arc::new(Counters::default());
+    let (out_tx, out_rx) = mpsc::channel::<Outgoing>(8);
+    let simulation = {
+        let (stop, counters, settings) = (Arc::clone(&stop), Arc::clone(&counters), settings.clone());
+        let (run_id, options) = (run_id.clone(), options.clone());
+        std::thread::Builder::new()
+            .name("simulation".into())
+            .spawn(move || simulate(&options, &run_id, &settings, policy_rx, &out_tx, &stop, &counters))
+            .map_err(NodeError::SimulationThread)?
+    };
+    let reporter = StatusReporter { run_id: &run_id, id, settings: &settings, options: &options, counters: &counters };
+    publishers.forward(out_rx, reporter).await;
+    let result = simulation.join();
+    info!("actor {id} stopped");
+    let _ = session.close().await;
+    result.map_err(|_| NodeError::SimulationPanicked)
+}
+
+/// Opens the session to the learner; None when `stop` came first.
+async fn connect(options: &ActorOptions, stop: &AtomicBool) -> Result<Option<zenoh::Session>, NodeError> {
+    let config = client_config(&options.connect, &options.zenoh_overrides)?;
+    info!(endpoints = ?options.connect, id = ?options.id, "connecting to the learner");
+    // With connect/timeout_ms = -1, opening waits for the learner forever, and its future
+    // blocks the thread that polls it; open on a blocking thread so a signal can end the wait.
+    let opening = tokio::task::spawn_blocking(move || zenoh::Wait::wait(zenoh::open(config)));
+    tokio::select! {
+        session = opening => Ok(Some(session
+            .map_err(|e| NodeError::Zenoh { context: "opening the session".into(), message: e.to_string() })?
+            .map_err(zenoh_error("opening the session"))?)),
+        () = stopped(stop) => Ok(None),
+    }
+}
+
+/// Where weights from the learner (published or queried) are checked and, when newer than
+/// what the simulation holds, handed to it.
+#[derive(Debug, Clone)]
+struct WeightsFeed {
+    run_id: String,
+    /// The shape this env needs (obs and action counts; hidden layers come with the weights).
+    expected: NetworkSpec,
+    policy_tx: Arc<watch::Sender<Option<Arc<LoadedPolicy>>>>,
+}
+
+impl WeightsFeed {
+    fn new(run_id: &str, num_actions: usize) -> (Self, watch::Receiver<Option<Arc<LoadedPolicy>>>) {
+        let expected = NetworkSpec { obs_dim: OBS_DIM, hidden: vec![], num_actions, layer_norm: true };
+        let (policy_tx, policy_rx) = watch::channel::<Option<Arc<LoadedPolicy>>>(None);
+        (Self { run_id: run_id.to_string(), expected, policy_tx: Arc::new(policy_tx) }, policy_rx)
+    }
+
+    /// Takes `bytes` if they are valid weights newer (by learner session, then version) than
+    /// the current ones; anything else is logged and ignored.
+    fn accept(&self, bytes: &[u8]) {
+        match load_weights(bytes, &self.run_id, &self.expected) {
             Ok(loaded) => {
-                let newer = policy_tx.borrow().as_ref().is_none_or(|p| loaded.order() > p.order());
+                let newer = self.policy_tx.borrow().as_ref().is_none_or(|p| loaded.order() > p.order());
                 if newer {
                     debug!(session = loaded.session, version = loaded.version, "new weights");
-                    policy_tx.send_replace(Some(Arc::new(loaded)));
+                    self.policy_tx.send_replace(Some(Arc::new(loaded)));
                 }
             }
             Err(e) => warn!("ignoring weights: {e}"),
         }
-    };
-    let on_weights = accept_weights.clone();
-    let _weights_subscriber = session
-        .declare_subscriber(keys::weights(&run_id))
-        .callback(move |sample| on_weights(&sample.payload().to_bytes()))
+    }
+
+    /// A starting actor asks for the latest weights rather than waiting for the next publish.
+    async fn wait_for_first(
+        &self,
+        session: &zenoh::Session,
+        policy_rx: &watch::Receiver<Option<Arc<LoadedPolicy>>>,
+        stop: &AtomicBool,
+    ) {
+        let joined = Instant::now();
+        let mut waited = Instant::now();
+        while policy_rx.borrow().is_none() && !stop.load(Ordering::SeqCst) {
+            if let Ok(replies) = session.get(keys::weights(&self.run_id)).timeout(Duration::from_secs(2)).await {
+                while let Ok(reply) = replies.recv_async().await {
+                    if let Ok(sample) = reply.result() {
+                        self.accept(&sample.payload().to_bytes());
+                    }
+                }
+            }
+            if policy_rx.borrow().is_none() {
+                if waited.elapsed() > Duration::from_secs(10) {
+                    info!("still waiting for the learner's weights");
+                    waited = Instant::now();
+                }
+                tokio::time::sleep(Duration::from_millis(200)).await;
+            }
+        }
+        if let Some(policy) = policy_rx.borrow().as_ref() {
+            info!(version = policy.version, after_ms = joined.elapsed().as_millis() as u64, "first weights");
+        }
+    }
+}
+
+/// What an actor declared to listen with; dropping it undeclares them.
+#[derive(Debug)]
+struct Subscriptions {
+    _weights: zenoh::pubsub::Subscriber<()>,
+    _control: zenoh::pubsub::Subscriber<()>,
+    _token: zenoh::liveliness::LivelinessToken,
+}
+
+/// Subscribes to weights and to the learner's stop, and declares this node's liveliness
+/// token (the learner keeps the messages of live nodes only).
+async fn subscribe(
+    session: &zenoh::Session,
+    run_id: &str,
+    weights: &WeightsFeed,
+    stop: &Arc<AtomicBool>,
+    options: &ActorOptions,
+) -> Result<Subscriptions, NodeError> {
+    let feed = weights.clone();
+    let weights = session
+        .declare_subscriber(keys::weights(run_id))
+        .callback(move |sample| feed.accept(&sample.payload().to_bytes()))
         .await
         .map_err(zenoh_error("subscribing to weights"))?;
-    let control_stop = Arc::clone(&stop);
-    let control_run = run_id.clone();
-    let _control_subscriber = session
-        .declare_subscriber(keys::control(&run_id))
+    let (control_stop, control_run) = (Arc::clone(stop), run_id.to_string());
+    let control = session
+        .declare_subscriber(keys::control(run_id))
         .callback(move |sample| {
             if let Ok(control) = proto::validate::control(&sample.payload().to_bytes(), &control_run)
                 && control.command == proto::Command::Stop as i32
@@ -189,110 +276,105 @@ pub async fn run(mut options: ActorOptions, stop: Arc<AtomicBool>) -> Result<(),
         })
         .await
         .map_err(zenoh_error("subscribing to control"))?;
-    // The learner keeps the messages of live nodes only: every node holds a token.
-    let token_key = if options.evaluator { keys::alive_evaluator(&run_id, id) } else { keys::alive_actor(&run_id, id) };
-    let _token = session.liveliness().declare_token(token_key).await.map_err(zenoh_error("declaring liveliness"))?;
+    let id = options.id.unwrap_or_default();
+    let token_key = if options.evaluator { keys::alive_evaluator(run_id, id) } else { keys::alive_actor(run_id, id) };
+    let token = session.liveliness().declare_token(token_key).await.map_err(zenoh_error("declaring liveliness"))?;
+    Ok(Subscriptions { _weights: weights, _control: control, _token: token })
+}
 
-    // A starting actor asks for the latest weights rather than waiting for the next publish.
-    let joined = Instant::now();
-    let mut waited = Instant::now();
-    while policy_rx.borrow().is_none() && !stop.load(Ordering::SeqCst) {
-        if let Ok(replies) = session.get(keys::weights(&run_id)).timeout(Duration::from_secs(2)).await {
-            while let Ok(reply) = replies.recv_async().await {
-                if let Ok(sample) = reply.result() {
-                    accept_weights(&sample.payload().to_bytes());
+/// The actor's three publishers: transitions block when the link is busy (back-pressure on
+/// the simulation), stats and status are dropped instead.
+#[derive(Debug)]
+struct Publishers {
+    transitions: zenoh::pubsub::Publisher<'static>,
+    stats: zenoh::pubsub::Publisher<'static>,
+    status: zenoh::pubsub::Publisher<'static>,
+}
+
+impl Publishers {
+    async fn declare(session: &zenoh::Session, run_id: &str, id: u32) -> Result<Self, NodeError> {
+        let declare = |key: String, congestion: CongestionControl, what: &'static str| async move {
+            session
+                .declare_publisher(key)
+                .congestion_control(congestion)
+                .await
+                .map_err(zenoh_error(format!("declaring the {what} publisher")))
+        };
+        Ok(Self {
+            transitions: declare(keys::transitions(run_id, id), CongestionControl::Block, "transitions").await?,
+            stats: declare(keys::stats(run_id, id), CongestionControl::Drop, "stats").await?,
+            status: declare(keys::status(run_id, id), CongestionControl::Drop, "status").await?,
+        })
+    }
+
+    /// Publishes what the simulation sends until it ends, and a status report every
+    /// `status_interval_s`.
+    async fn forward(&self, mut out_rx: mpsc::Receiver<Outgoing>, mut reporter: StatusReporter<'_>) {
+        let mut ticker = tokio::time::interval(Duration::from_secs_f64(reporter.settings.status_interval_s));
+        let mut last = (0u64, Instant::now());
+        loop {
+            tokio::select! {
+                message = out_rx.recv() => {
+                    let Some(message) = message else { break };
+                    let (publisher, bytes) = match &message {
+                        Outgoing::Batch(batch) => (&self.transitions, batch.encode_to_vec()),
+                        Outgoing::Stats(episode) => (&self.stats, episode.encode_to_vec()),
+                    };
+                    if let Err(e) = publisher.put(bytes).await {
+                        warn!("publish failed: {e}");
+                    }
+                }
+                _ = ticker.tick() => {
+                    let report = reporter.report(&mut last);
+                    let _ = self.status.put(report.encode_to_vec()).await;
                 }
             }
         }
-        if policy_rx.borrow().is_none() {
-            if waited.elapsed() > Duration::from_secs(10) {
-                info!("still waiting for the learner's weights");
-                waited = Instant::now();
-            }
-            tokio::time::sleep(Duration::from_millis(200)).await;
+    }
+}
+
+/// Builds the periodic status report from the simulation's counters.
+#[derive(Debug)]
+struct StatusReporter<'a> {
+    run_id: &'a str,
+    id: u32,
+    settings: &'a ActorSettings,
+    options: &'a ActorOptions,
+    counters: &'a Counters,
+}
+
+impl StatusReporter<'_> {
+    /// The report since `last` (steps, time), which it advances; touches the heartbeat file.
+    fn report(&mut self, last: &mut (u64, Instant)) -> proto::ActorStatus {
+        let counters = self.counters;
+        let steps = counters.env_steps.load(Ordering::Relaxed);
+        let rate = (steps - last.0) as f64 / last.1.elapsed().as_secs_f64().max(1e-9);
+        *last = (steps, Instant::now());
+        let report = proto::ActorStatus {
+            protocol_version: PROTOCOL_VERSION,
+            run_id: self.run_id.to_string(),
+            actor_id: self.id,
+            weights_version: counters.weights_version.load(Ordering::Relaxed),
+            env_steps: steps,
+            physics_steps: counters.physics_steps.load(Ordering::Relaxed),
+            env_steps_per_second: rate as f32,
+            epsilon: f64::from_bits(counters.epsilon_bits.load(Ordering::Relaxed)),
+            num_envs: self.settings.envs_per_actor as u32,
+            evaluator: self.options.evaluator,
+        };
+        if let Some(path) = &self.options.heartbeat
+            && let Err(e) = std::fs::write(path, steps.to_string())
+        {
+            warn!("heartbeat {}: {e}", path.display());
         }
-    }
-
-    if let Some(policy) = policy_rx.borrow().as_ref() {
-        info!(version = policy.version, after_ms = joined.elapsed().as_millis() as u64, "first weights");
-    }
-
-    let transitions = session
-        .declare_publisher(keys::transitions(&run_id, id))
-        .congestion_control(CongestionControl::Block)
-        .await
-        .map_err(zenoh_error("declaring the transitions publisher"))?;
-    let stats = session
-        .declare_publisher(keys::stats(&run_id, id))
-        .congestion_control(CongestionControl::Drop)
-        .await
-        .map_err(zenoh_error("declaring the stats publisher"))?;
-    let status = session
-        .declare_publisher(keys::status(&run_id, id))
-        .congestion_control(CongestionControl::Drop)
-        .await
-        .map_err(zenoh_error("declaring the status publisher"))?;
-
-    let counters = Arc::new(Counters::default());
-    let (out_tx, mut out_rx) = mpsc::channel::<Outgoing>(8);
-    let simulation = {
-        let stop = Arc::clone(&stop);
-        let counters = Arc::clone(&counters);
-        let settings = settings.clone();
-        let run_id = run_id.clone();
-        let options = options.clone();
-        std::thread::Builder::new()
-            .name("simulation".into())
-            .spawn(move || simulate(&options, &run_id, &settings, policy_rx, &out_tx, &stop, &counters))
-            .map_err(NodeError::SimulationThread)?
-    };
-
-    let mut ticker = tokio::time::interval(Duration::from_secs_f64(settings.status_interval_s));
-    let (mut last_steps, mut last_time) = (0u64, Instant::now());
-    loop {
-        tokio::select! {
-            message = out_rx.recv() => {
-                let Some(message) = message else { break };
-                let (publisher, bytes) = match &message {
-                    Outgoing::Batch(batch) => (&transitions, batch.encode_to_vec()),
-                    Outgoing::Stats(episode) => (&stats, episode.encode_to_vec()),
-                };
-                if let Err(e) = publisher.put(bytes).await {
-                    warn!("publish failed: {e}");
-                }
-            }
-            _ = ticker.tick() => {
-                let steps = counters.env_steps.load(Ordering::Relaxed);
-                let rate = (steps - last_steps) as f64 / last_time.elapsed().as_secs_f64().max(1e-9);
-                (last_steps, last_time) = (steps, Instant::now());
-                let report = proto::ActorStatus {
-                    protocol_version: PROTOCOL_VERSION,
-                    run_id: run_id.clone(),
-                    actor_id: id,
-                    weights_version: counters.weights_version.load(Ordering::Relaxed),
-                    env_steps: steps,
-                    physics_steps: counters.physics_steps.load(Ordering::Relaxed),
-                    env_steps_per_second: rate as f32,
-                    epsilon: f64::from_bits(counters.epsilon_bits.load(Ordering::Relaxed)),
-                    num_envs: settings.envs_per_actor as u32,
-                    evaluator: options.evaluator,
-                };
-                let _ = status.put(report.encode_to_vec()).await;
-                if let Some(path) = &options.heartbeat
-                    && let Err(e) = std::fs::write(path, steps.to_string())
-                {
-                    warn!("heartbeat {}: {e}", path.display());
-                }
-                info!(steps, steps_per_s = format!("{rate:.0}"), weights = report.weights_version, epsilon = format!("{:.4}", report.epsilon), "actor status");
-            }
-        }
-    }
-    let result = simulation.join();
-    info!("actor {id} stopped");
-    let _ = session.close().await;
-    match result {
-        Ok(()) => Ok(()),
-        Err(_) => Err(NodeError::SimulationPanicked),
+        info!(
+            steps,
+            steps_per_s = format!("{rate:.0}"),
+            weights = report.weights_version,
+            epsilon = format!("{:.4}", report.epsilon),
+            "actor status"
+        );
+        report
     }
 }
 
@@ -424,16 +506,7 @@ fn simulate(
         counters.physics_steps.fetch_add(physics, Ordering::Relaxed);
 
         if !options.evaluator {
-            let next = env.next_observations();
-            for i in 0..k {
-                batch.env_ids.push(i as u32);
-                batch.observations.extend_from_slice(&observations[i * OBS_DIM..(i + 1) * OBS_DIM]);
-                batch.next_observations.extend_from_slice(&next[i * OBS_DIM..(i + 1) * OBS_DIM]);
-                batch.actions.push(actions[i]);
-                batch.rewards.push(env.rewards()[i]);
-                batch.terminated.push(env.terminated()[i]);
-                batch.truncated.push(env.truncated()[i]);
-            }
+            append_transitions(&mut batch, &env, &observations, &actions);
             batch.physics_steps += physics;
             if batch.len() >= settings.batch_transitions {
                 batch.weights_version = policy.version;
@@ -446,26 +519,62 @@ fn simulate(
             }
         }
         for (_, summary) in finished {
-            let stats = proto::EpisodeStats {
-                protocol_version: PROTOCOL_VERSION,
-                run_id: run_id.to_string(),
-                actor_id: id,
+            let stats = EpisodeStatsSource {
+                run_id,
+                id,
                 epsilon,
-                episode_return: summary.reward.total(),
-                return_position: summary.reward.position,
-                return_upright: summary.reward.upright,
-                distance: summary.distance,
-                duration: summary.duration,
-                speed: summary.speed,
-                flips: summary.flips,
-                terminated: summary.terminated,
-                truncated: summary.truncated,
                 evaluation: options.evaluator,
                 weights_version: policy.version,
-            };
+            }
+            .stats(&summary);
             if out.blocking_send(Outgoing::Stats(stats)).is_err() {
                 return;
             }
+        }
+    }
+}
+
+/// Appends the step just taken by every crawler of `env` to `batch`.
+fn append_transitions(batch: &mut proto::TransitionBatch, env: &VecEnv, observations: &[f32], actions: &[u32]) {
+    let next = env.next_observations();
+    for i in 0..env.len() {
+        batch.env_ids.push(i as u32);
+        batch.observations.extend_from_slice(&observations[i * OBS_DIM..(i + 1) * OBS_DIM]);
+        batch.next_observations.extend_from_slice(&next[i * OBS_DIM..(i + 1) * OBS_DIM]);
+        batch.actions.push(actions[i]);
+        batch.rewards.push(env.rewards()[i]);
+        batch.terminated.push(env.terminated()[i]);
+        batch.truncated.push(env.truncated()[i]);
+    }
+}
+
+/// Who an episode's stats come from, and with what policy.
+struct EpisodeStatsSource<'a> {
+    run_id: &'a str,
+    id: u32,
+    epsilon: f64,
+    evaluation: bool,
+    weights_version: u64,
+}
+
+impl EpisodeStatsSource<'_> {
+    fn stats(&self, summary: &EpisodeSummary) -> proto::EpisodeStats {
+        proto::EpisodeStats {
+            protocol_version: PROTOCOL_VERSION,
+            run_id: self.run_id.to_string(),
+            actor_id: self.id,
+            epsilon: self.epsilon,
+            episode_return: summary.reward.total(),
+            return_position: summary.reward.position,
+            return_upright: summary.reward.upright,
+            distance: summary.distance,
+            duration: summary.duration,
+            speed: summary.speed,
+            flips: summary.flips,
+            terminated: summary.terminated,
+            truncated: summary.truncated,
+            evaluation: self.evaluation,
+            weights_version: self.weights_version,
         }
     }
 }
@@ -479,28 +588,4 @@ fn new_batch(run_id: &str, actor: u32, incarnation: u64) -> proto::TransitionBat
         obs_dim: OBS_DIM as u32,
         ..Default::default()
     }
-}
-
-/// Waits for Ctrl-C or SIGTERM, then sets `stop`.
-pub async fn stop_on_signal(stop: Arc<AtomicBool>) {
-    let ctrl_c = tokio::signal::ctrl_c();
-    #[cfg(unix)]
-    {
-        let mut term = match tokio::signal::unix::signal(tokio::signal::unix::SignalKind::terminate()) {
-            Ok(term) => term,
-            Err(_) => {
-                let _ = ctrl_c.await;
-                stop.store(true, Ordering::SeqCst);
-                return;
-            }
-        };
-        tokio::select! {
-            _ = ctrl_c => {}
-            _ = term.recv() => {}
-        }
-    }
-    #[cfg(not(unix))]
-    let _ = ctrl_c.await;
-    info!("signal received: stopping");
-    stop.store(true, Ordering::SeqCst);
 }

@@ -5,9 +5,9 @@
 use std::time::{Duration, Instant};
 
 use crawler_actor::policy::{MlpPolicy, NetworkSpec};
-use crawler_learner::adam::{AdamConfig, FlatAdam};
+use crawler_learner::algo::adam::{AdamConfig, FlatAdam};
+use crawler_learner::algo::dqn::{Batch, Dqn, DqnConfig};
 use crawler_learner::checkpoint::encode_weights;
-use crawler_learner::dqn::{Batch, Dqn, DqnConfig};
 use crawler_learner::replay::{Replay, ReplayConfig, SampledBatch, StreamId, Transition};
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
@@ -61,7 +61,7 @@ fn per_parameter_adam_step_us(spec: &NetworkSpec, budget: Duration) -> f64 {
 
 /// Microseconds per step of the flat fused Adam over the study's network.
 fn flat_adam_step_us(budget: Duration) -> f64 {
-    let dqn = Dqn::new(DqnConfig::default());
+    let dqn = Dqn::new(NetworkSpec::study(), DqnConfig::default());
     let mut params = dqn.online.flat().copy();
     let grad = Tensor::randn([params.numel() as i64], (Kind::Float, tch::Device::Cpu));
     let mut adam = FlatAdam::new(params.numel(), AdamConfig::default());
@@ -78,7 +78,7 @@ fn main() {
     for threads in [1usize, 2] {
         crawler_learner::set_torch_threads(threads);
         for batch in [32i64, 256] {
-            let mut dqn = Dqn::new(DqnConfig::default());
+            let mut dqn = Dqn::new(NetworkSpec::study(), DqnConfig::default());
             let data = random_batch(batch);
             let flat = rate(budget, || {
                 dqn.update(&data);
@@ -155,7 +155,7 @@ fn main() {
 
     println!("== inference, study network: plain Rust vs tch");
     tch::manual_seed(0);
-    let dqn = Dqn::new(DqnConfig::default());
+    let dqn = Dqn::new(NetworkSpec::study(), DqnConfig::default());
     let policy = MlpPolicy::from_safetensors(&encode_weights(&dqn.online), &spec).unwrap_or_else(|e| panic!("{e}"));
     for batch in [1usize, 16] {
         let inputs: Vec<f32> = (0..batch * OBS).map(|i| (i % 7) as f32 * 0.3).collect();

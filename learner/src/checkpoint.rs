@@ -1,152 +1,26 @@
-//! Checkpoints: everything needed to resume a run, written atomically.
-//!
-//! A checkpoint is a directory `step-<updates>` holding:
-//! - `weights.safetensors`: the online network, named as a PyTorch `nn.Sequential` of the same
-//!   layers names its `state_dict` (see [`NetworkSpec`]), so `load_state_dict` takes it as is;
-//! - `target.safetensors`: the target network, same names;
-//! - `optimizer.safetensors`: Adam's `exp_avg` and `exp_avg_sq`, flat, in parameter order;
-//! - `replay.bin` (optional): a bincode snapshot of the replay buffer;
-//! - `meta.json`: format and layout versions, network spec, counters, ε, the run's config, and
-//!   the size and CRC-32 of every file above, so corruption and truncation are caught by name.
-//!
-//! It is written into a temporary sibling directory and renamed into place, so a crash during
-//! a write leaves the previous checkpoints untouched; leftovers are removed on the next save.
+//! The DQN and replay side of checkpoints; the format itself (files, checksums, atomic
+//! renames) is [`crawler_run::checkpoint`], which links no libtorch.
 
-use std::collections::BTreeMap;
-use std::fs;
-use std::io::{BufReader, BufWriter, Write};
+use std::io::{BufReader, Write};
 use std::path::{Path, PathBuf};
 
-use crawler_actor::env::OBS_LAYOUT_VERSION;
-use crawler_actor::policy::NetworkSpec;
-use safetensors::tensor::TensorView;
-use safetensors::{Dtype, SafeTensors};
-use serde::{Deserialize, Serialize};
+pub use crawler_run::checkpoint::{
+    CHECKPOINT_FORMAT, Checkpoint, CheckpointError, CheckpointMeta, FileDigest, FileWriter, Progress, Snapshot,
+    corrupt, latest, list, load,
+};
 
-use crate::dqn::Dqn;
-use crate::network::{ParameterCountError, QNetwork};
+use crate::algo::dqn::Dqn;
+use crate::algo::network::{ParameterCountError, QNetwork};
 use crate::replay::Replay;
 
-/// Version of this on-disk layout.
-pub const CHECKPOINT_FORMAT: u32 = 1;
-
-const META: &str = "meta.json";
-const WEIGHTS: &str = "weights.safetensors";
-const TARGET: &str = "target.safetensors";
-const OPTIMIZER: &str = "optimizer.safetensors";
-const REPLAY: &str = "replay.bin";
-const PREFIX: &str = "step-";
-const TEMP_MARKER: &str = ".partial-";
-
-/// Test hook: with `CRAWLER_FAULT_CHECKPOINT_PAUSE_MS` set, every save waits that long with
-/// its files written but not yet renamed into place, so a test can kill the process in the
-/// middle of a checkpoint. Unset, it costs one environment lookup per checkpoint.
-const FAULT_PAUSE_VARIABLE: &str = "CRAWLER_FAULT_CHECKPOINT_PAUSE_MS";
-
-fn pause_for_fault_injection() {
-    if let Some(ms) = std::env::var(FAULT_PAUSE_VARIABLE).ok().and_then(|v| v.parse::<u64>().ok()) {
-        std::thread::sleep(std::time::Duration::from_millis(ms));
-    }
-}
-
-#[derive(Debug, thiserror::Error)]
-pub enum CheckpointError {
-    #[error("cannot {action} {path}: {source}")]
-    Io { action: &'static str, path: PathBuf, source: std::io::Error },
-    #[error("checkpoint file {path} is corrupt: {reason}")]
-    Corrupt { path: PathBuf, reason: String },
-    #[error("checkpoint {path} does not fit this run: its {what} is {found}, this run needs {expected}")]
-    Mismatch { path: PathBuf, what: &'static str, found: String, expected: String },
-    #[error("no checkpoint found in {0}; train first, or point at a `step-*` directory")]
-    NotFound(PathBuf),
-    #[error("refusing to save a checkpoint in {0}: the {1} network holds NaN or infinite weights")]
-    NonFinite(PathBuf, &'static str),
-    #[error("checkpoint {path} did not load back after writing, so it was removed: {source}")]
-    Unreadable { path: PathBuf, source: Box<CheckpointError> },
-}
-
-fn io(action: &'static str, path: &Path) -> impl FnOnce(std::io::Error) -> CheckpointError + use<> {
-    let path = path.to_path_buf();
-    move |source| CheckpointError::Io { action, path, source }
-}
-
-fn corrupt(path: &Path, reason: impl ToString) -> CheckpointError {
-    CheckpointError::Corrupt { path: path.to_path_buf(), reason: reason.to_string() }
-}
-
-/// Size and checksum of one file of a checkpoint.
-#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
-pub struct FileDigest {
-    pub bytes: u64,
-    pub crc32: u32,
-}
-
-/// Counters a run keeps across restarts.
-#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
-pub struct Progress {
-    /// Gradient updates done.
-    pub updates: u64,
-    /// Environment steps (decisions) received from actors.
-    pub env_steps: u64,
-    /// Physics steps simulated by actors.
-    pub physics_steps: u64,
-    /// Version of the last weights published.
-    pub weights_version: u64,
-    /// The learner process of the run that wrote this (see `proto::Weights::learner_session`).
-    #[serde(default)]
-    pub learner_session: u64,
-    /// ε of the exploration schedule at this point.
-    pub epsilon: f64,
-    /// Seconds of training behind this checkpoint, over all sessions of the run.
-    pub train_seconds: f64,
-}
-
-/// The `meta.json` of a checkpoint.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-pub struct CheckpointMeta {
-    pub format: u32,
-    pub obs_layout_version: u32,
-    pub run_id: String,
-    pub network: NetworkSpec,
-    pub progress: Progress,
-    pub adam_step: u64,
-    /// The run's full configuration, for the record and for `--resume`.
-    pub config: serde_json::Value,
-    pub files: BTreeMap<String, FileDigest>,
-}
-
-/// A loaded checkpoint.
-#[derive(Debug, Clone)]
-pub struct Checkpoint {
-    pub path: PathBuf,
-    pub meta: CheckpointMeta,
-    pub online: Vec<f32>,
-    pub target: Vec<f32>,
-    pub exp_avg: Vec<f32>,
-    pub exp_avg_sq: Vec<f32>,
-}
-
-/// The online network's weights as safetensors bytes (also what the learner broadcasts).
+/// The network's weights as safetensors bytes named as PyTorch's `state_dict` (what the
+/// learner broadcasts and what `weights.safetensors` holds).
 pub fn encode_weights(network: &QNetwork) -> Vec<u8> {
-    let named = network.named_values();
-    let bytes: Vec<(String, Vec<usize>, Vec<u8>)> =
-        named.into_iter().map(|(name, shape, values)| (name, shape, f32_bytes(&values))).collect();
-    serialize(bytes.iter().map(|(n, s, b)| (n.as_str(), s.clone(), b.as_slice())))
+    crawler_run::checkpoint::encode_weights(network.spec(), &network.flat_values())
 }
 
-fn f32_bytes(values: &[f32]) -> Vec<u8> {
-    values.iter().flat_map(|v| v.to_le_bytes()).collect()
-}
-
-fn serialize<'a>(tensors: impl Iterator<Item = (&'a str, Vec<usize>, &'a [u8])>) -> Vec<u8> {
-    let views: Vec<(String, TensorView<'a>)> = tensors
-        .filter_map(|(name, shape, data)| TensorView::new(Dtype::F32, shape, data).ok().map(|v| (name.to_string(), v)))
-        .collect();
-    // Serialising well-formed F32 views into memory cannot fail.
-    safetensors::serialize(views, None).unwrap_or_default()
-}
-
-/// Writes a checkpoint of `dqn` under `dir` and keeps the newest `keep` of them.
+/// Writes a checkpoint of `dqn` (and `replay`, when given) under `dir` and keeps the newest
+/// `keep` of them.
 pub fn save(
     dir: &Path,
     dqn: &Dqn,
@@ -156,250 +30,28 @@ pub fn save(
     replay: Option<&Replay>,
     keep: usize,
 ) -> Result<PathBuf, CheckpointError> {
-    for (network, which) in [(&dqn.online, "online"), (&dqn.target, "target")] {
-        if !network.all_finite() {
-            return Err(CheckpointError::NonFinite(dir.to_path_buf(), which));
-        }
-    }
-    fs::create_dir_all(dir).map_err(io("create", dir))?;
-    let name = format!("{PREFIX}{:012}", progress.updates);
-    let final_path = dir.join(&name);
-    let temp = dir.join(format!("{name}{TEMP_MARKER}{}", std::process::id()));
-    if temp.exists() {
-        fs::remove_dir_all(&temp).map_err(io("remove", &temp))?;
-    }
-    fs::create_dir(&temp).map_err(io("create", &temp))?;
-
-    let mut files = BTreeMap::new();
-    let mut write = |file: &str, fill: &dyn Fn(&mut dyn Write) -> std::io::Result<()>| {
-        let digest = write_synced(&temp.join(file), fill)?;
-        files.insert(file.to_string(), digest);
-        Ok::<(), CheckpointError>(())
+    let write_replay = |replay: &Replay, mut writer: &mut dyn Write| {
+        bincode::serde::encode_into_std_write(replay, &mut writer, bincode::config::standard())
+            .map(drop)
+            .map_err(std::io::Error::other)
     };
-    write(WEIGHTS, &|w| w.write_all(&encode_weights(&dqn.online)))?;
-    write(TARGET, &|w| w.write_all(&encode_weights(&dqn.target)))?;
-    let exp_avg = f32_bytes(&dqn.optimizer.exp_avg);
-    let exp_avg_sq = f32_bytes(&dqn.optimizer.exp_avg_sq);
-    let n = dqn.online.flat().numel();
-    let optimizer =
-        serialize([("exp_avg", vec![n], &exp_avg[..]), ("exp_avg_sq", vec![n], &exp_avg_sq[..])].into_iter());
-    write(OPTIMIZER, &|w| w.write_all(&optimizer))?;
-    if let Some(replay) = replay {
-        write(REPLAY, &|mut w| {
-            bincode::serde::encode_into_std_write(replay, &mut w, bincode::config::standard())
-                .map(drop)
-                .map_err(std::io::Error::other)
-        })?;
-    }
-    let meta = CheckpointMeta {
-        format: CHECKPOINT_FORMAT,
-        obs_layout_version: OBS_LAYOUT_VERSION,
-        run_id: run_id.to_string(),
-        network: dqn.config.network.clone(),
-        progress: progress.clone(),
+    let replay_writer = replay.map(|replay| move |w: &mut dyn Write| write_replay(replay, w));
+    let (online, target) = (dqn.online.flat_values(), dqn.target.flat_values());
+    let snapshot = Snapshot {
+        network: &dqn.network,
+        online: &online,
+        target: &target,
+        exp_avg: &dqn.optimizer.exp_avg,
+        exp_avg_sq: &dqn.optimizer.exp_avg_sq,
         adam_step: dqn.optimizer.step,
-        config: config.clone(),
-        files,
+        replay: replay_writer.as_ref().map(|w| w as FileWriter<'_>),
     };
-    let json = serde_json::to_vec_pretty(&meta).map_err(|e| corrupt(&temp.join(META), e))?;
-    write_synced(&temp.join(META), &|w| w.write_all(&json))?;
-
-    pause_for_fault_injection();
-    if final_path.exists() {
-        fs::remove_dir_all(&final_path).map_err(io("replace", &final_path))?;
-    }
-    fs::rename(&temp, &final_path).map_err(io("rename into place", &final_path))?;
-    if let Ok(parent) = fs::File::open(dir) {
-        let _ = parent.sync_all();
-    }
-    // Only a checkpoint that loads back counts; older ones are pruned only after that, so
-    // the newest good checkpoint is never the one removed.
-    if let Err(error) = verify_saved(&final_path) {
-        let _ = fs::remove_dir_all(&final_path);
-        return Err(CheckpointError::Unreadable { path: final_path, source: Box::new(error) });
-    }
-    prune(dir, keep)?;
-    Ok(final_path)
-}
-
-/// Reads a checkpoint back as `eval` and `--resume` will: every file against its checksum,
-/// the weights finite.
-fn verify_saved(path: &Path) -> Result<(), CheckpointError> {
-    let checkpoint = load(path)?;
-    if !checkpoint.online.iter().chain(&checkpoint.target).all(|v| v.is_finite()) {
-        return Err(corrupt(path, "non-finite weights"));
-    }
-    if let Some(digest) = checkpoint.meta.files.get(REPLAY) {
-        read_verified(&path.join(REPLAY), digest)?;
-    }
-    Ok(())
-}
-
-/// Counts and checksums bytes on their way to a writer.
-struct DigestWriter<W> {
-    inner: W,
-    hasher: crc32fast::Hasher,
-    bytes: u64,
-}
-
-impl<W: Write> Write for DigestWriter<W> {
-    fn write(&mut self, buf: &[u8]) -> std::io::Result<usize> {
-        let n = self.inner.write(buf)?;
-        self.hasher.update(&buf[..n]);
-        self.bytes += n as u64;
-        Ok(n)
-    }
-
-    fn flush(&mut self) -> std::io::Result<()> {
-        self.inner.flush()
-    }
-}
-
-/// Writes a file through `fill`, syncs it to disk and returns its size and checksum.
-fn write_synced(
-    path: &Path,
-    fill: &dyn Fn(&mut dyn Write) -> std::io::Result<()>,
-) -> Result<FileDigest, CheckpointError> {
-    let file = fs::File::create(path).map_err(io("create", path))?;
-    let mut writer =
-        DigestWriter { inner: BufWriter::with_capacity(1 << 20, file), hasher: crc32fast::Hasher::new(), bytes: 0 };
-    fill(&mut writer).and_then(|()| writer.flush()).map_err(io("write", path))?;
-    let DigestWriter { inner, hasher, bytes } = writer;
-    let file = inner.into_inner().map_err(|e| io("write", path)(e.into_error()))?;
-    file.sync_all().map_err(io("sync", path))?;
-    Ok(FileDigest { bytes, crc32: hasher.finalize() })
-}
-
-/// Checkpoint directories under `dir`, oldest first. Partial writes are not listed.
-pub fn list(dir: &Path) -> Result<Vec<PathBuf>, CheckpointError> {
-    if !dir.exists() {
-        return Ok(Vec::new());
-    }
-    let mut found: Vec<PathBuf> = fs::read_dir(dir)
-        .map_err(io("read", dir))?
-        .filter_map(Result::ok)
-        .map(|entry| entry.path())
-        .filter(|path| {
-            let name = path.file_name().and_then(|n| n.to_str()).unwrap_or_default();
-            name.starts_with(PREFIX) && !name.contains(TEMP_MARKER) && path.join(META).is_file()
-        })
-        .collect();
-    found.sort();
-    Ok(found)
-}
-
-/// The newest complete checkpoint under `dir`.
-pub fn latest(dir: &Path) -> Result<PathBuf, CheckpointError> {
-    list(dir)?.pop().ok_or_else(|| CheckpointError::NotFound(dir.to_path_buf()))
-}
-
-/// Removes all but the newest `keep` checkpoints, and leftovers of interrupted writes.
-fn prune(dir: &Path, keep: usize) -> Result<(), CheckpointError> {
-    let complete = list(dir)?;
-    let excess = complete.len().saturating_sub(keep.max(1));
-    for old in &complete[..excess] {
-        fs::remove_dir_all(old).map_err(io("remove", old))?;
-    }
-    let own = format!("{TEMP_MARKER}{}", std::process::id());
-    for entry in fs::read_dir(dir).map_err(io("read", dir))?.filter_map(Result::ok) {
-        let name = entry.file_name().to_string_lossy().to_string();
-        if name.contains(TEMP_MARKER) && !name.ends_with(&own) {
-            let _ = fs::remove_dir_all(entry.path());
-        }
-    }
-    Ok(())
-}
-
-/// Loads a checkpoint: `path` is a `step-*` directory or a directory of them (the newest is
-/// taken). Every file is checked against the sizes and checksums in `meta.json`.
-pub fn load(path: &Path) -> Result<Checkpoint, CheckpointError> {
-    let path = if path.join(META).is_file() { path.to_path_buf() } else { latest(path)? };
-    let meta_path = path.join(META);
-    let meta_bytes = fs::read(&meta_path).map_err(io("read", &meta_path))?;
-    let meta: CheckpointMeta = serde_json::from_slice(&meta_bytes).map_err(|e| corrupt(&meta_path, e))?;
-    if meta.format != CHECKPOINT_FORMAT {
-        return Err(CheckpointError::Mismatch {
-            path,
-            what: "format version",
-            found: meta.format.to_string(),
-            expected: CHECKPOINT_FORMAT.to_string(),
-        });
-    }
-    if meta.obs_layout_version != OBS_LAYOUT_VERSION {
-        return Err(CheckpointError::Mismatch {
-            path,
-            what: "observation layout version",
-            found: meta.obs_layout_version.to_string(),
-            expected: OBS_LAYOUT_VERSION.to_string(),
-        });
-    }
-    meta.network.validate().map_err(|e| corrupt(&meta_path, e))?;
-    let read = |file: &str| -> Result<Vec<u8>, CheckpointError> {
-        let digest = meta.files.get(file).ok_or_else(|| corrupt(&meta_path, format!("no entry for {file}")))?;
-        read_verified(&path.join(file), digest)
-    };
-    let n = meta.network.num_params();
-    let online = decode_weights(&read(WEIGHTS)?, &meta.network, &path.join(WEIGHTS))?;
-    let target = decode_weights(&read(TARGET)?, &meta.network, &path.join(TARGET))?;
-    let optimizer_path = path.join(OPTIMIZER);
-    let optimizer = read(OPTIMIZER)?;
-    let tensors = SafeTensors::deserialize(&optimizer).map_err(|e| corrupt(&optimizer_path, e))?;
-    let flat = |name: &str| -> Result<Vec<f32>, CheckpointError> {
-        let view = tensors.tensor(name).map_err(|e| corrupt(&optimizer_path, e))?;
-        let values = to_f32(view.data());
-        if values.len() != n {
-            return Err(corrupt(&optimizer_path, format!("{name} has {} values, the network {n}", values.len())));
-        }
-        Ok(values)
-    };
-    let (exp_avg, exp_avg_sq) = (flat("exp_avg")?, flat("exp_avg_sq")?);
-    Ok(Checkpoint { path, meta, online, target, exp_avg, exp_avg_sq })
-}
-
-/// A checkpoint file's bytes, checked against its size and checksum.
-fn read_verified(path: &Path, digest: &FileDigest) -> Result<Vec<u8>, CheckpointError> {
-    let bytes = fs::read(path).map_err(io("read", path))?;
-    verify(path, &bytes, digest)?;
-    Ok(bytes)
-}
-
-fn verify(path: &Path, bytes: &[u8], digest: &FileDigest) -> Result<(), CheckpointError> {
-    if bytes.len() as u64 != digest.bytes {
-        return Err(corrupt(path, format!("{} bytes, expected {} (truncated?)", bytes.len(), digest.bytes)));
-    }
-    let crc = crc32fast::hash(bytes);
-    if crc != digest.crc32 {
-        return Err(corrupt(path, format!("CRC-32 {crc:08x}, expected {:08x}", digest.crc32)));
-    }
-    Ok(())
-}
-
-fn to_f32(bytes: &[u8]) -> Vec<f32> {
-    bytes.chunks_exact(4).map(|b| f32::from_le_bytes([b[0], b[1], b[2], b[3]])).collect()
-}
-
-/// Flat parameter values, in spec order, from safetensors bytes named as the spec says.
-pub fn decode_weights(bytes: &[u8], spec: &NetworkSpec, path: &Path) -> Result<Vec<f32>, CheckpointError> {
-    let tensors = SafeTensors::deserialize(bytes).map_err(|e| corrupt(path, e))?;
-    let mut flat = Vec::with_capacity(spec.num_params());
-    for info in spec.params() {
-        let view = tensors.tensor(&info.name).map_err(|_| corrupt(path, format!("no tensor `{}`", info.name)))?;
-        if view.dtype() != Dtype::F32 || view.shape() != info.shape.as_slice() {
-            return Err(corrupt(
-                path,
-                format!("`{}` is {:?} {:?}, expected F32 {:?}", info.name, view.dtype(), view.shape(), info.shape),
-            ));
-        }
-        flat.extend(to_f32(view.data()));
-    }
-    Ok(flat)
+    crawler_run::checkpoint::save(dir, &snapshot, run_id, progress, config, keep)
 }
 
 /// Reads the replay snapshot of a checkpoint, if it has one.
 pub fn load_replay(checkpoint: &Checkpoint) -> Result<Option<Replay>, CheckpointError> {
-    let Some(digest) = checkpoint.meta.files.get(REPLAY) else { return Ok(None) };
-    let path = checkpoint.path.join(REPLAY);
-    let bytes = read_verified(&path, digest)?;
+    let Some((path, bytes)) = crawler_run::checkpoint::replay_bytes(checkpoint)? else { return Ok(None) };
     let reader = BufReader::new(bytes.as_slice());
     let replay: Replay = bincode::serde::decode_from_std_read(&mut { reader }, bincode::config::standard())
         .map_err(|e| corrupt(&path, e))?;
@@ -418,12 +70,12 @@ impl Dqn {
     }
 
     fn check_network(&self, checkpoint: &Checkpoint) -> Result<(), CheckpointError> {
-        if checkpoint.meta.network != self.config.network {
+        if checkpoint.meta.network != self.network {
             return Err(CheckpointError::Mismatch {
                 path: checkpoint.path.clone(),
                 what: "network",
                 found: format!("{:?}", checkpoint.meta.network),
-                expected: format!("{:?}", self.config.network),
+                expected: format!("{:?}", self.network),
             });
         }
         Ok(())

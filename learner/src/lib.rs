@@ -1,25 +1,22 @@
-//! The learner side of crawler: replay, the libtorch Double DQN, checkpoints and metrics.
+//! The learner side of crawler: replay, the libtorch Double DQN and the learner process.
 //!
-//! - [`network`]: the Q-network, every parameter a view into one flat buffer.
-//! - [`adam`]: Adam over that buffer, the arithmetic of `torch.optim.Adam`.
-//! - [`dqn`]: TD targets (Double or vanilla), loss, target-network upkeep.
-//! - [`replay`]: the ring buffer (each observation stored once), n-step returns, PER.
-//! - [`rate`]: the samples-per-insert limiter.
-//! - [`checkpoint`]: atomic, checksummed checkpoints; [`config`]: the TOML presets.
-//! - [`service`]: the learner process (router, ingest, training thread, weights).
-//! - [`access_control`]: the router's zenoh ACL for runs served over mutual TLS.
-//! - [`metrics`]: TensorBoard event files and `metrics.csv`.
-//! - [`evaluate`], [`viz`]: greedy episodes, plots and the gait animation.
+//! Three layers, each its own module tree:
+//! - the algorithm, [`algo`]: the Q-network on one flat buffer, fused Adam, the Double DQN
+//!   update; [`replay`]: the ring that stores each observation once, n-step returns, its
+//!   samplers (uniform, prioritised); [`rate`]: the samples-per-insert limiter;
+//! - the process, [`service`]: the embedded zenoh router and its access control, the
+//!   receive path (`service::edge`), the training thread (`service::trainer`), status and
+//!   metrics (`service::telemetry`);
+//! - persistence, [`checkpoint`]: the DQN and replay glue over `crawler_run::checkpoint`.
+//!
+//! Everything about a run that needs no libtorch (its config, the checkpoint format, metrics
+//! files, evaluation and plots) is the `crawler-run` crate.
 
-pub mod access_control;
-pub mod adam;
+pub mod algo;
 pub mod checkpoint;
-pub mod config;
-pub mod dqn;
-pub mod evaluate;
-pub mod memory;
-pub mod metrics;
-pub mod network;
+pub mod rate;
+pub mod replay;
+pub mod service;
 
 /// Sets libtorch's intra-op threads. Use 1 unless the learner owns the machine: with two
 /// OpenMP threads, updates collapse from ~500/s to under 70/s as soon as anything else needs
@@ -27,12 +24,6 @@ pub mod network;
 pub fn set_torch_threads(threads: usize) {
     tch::set_num_threads(threads.max(1) as i32);
 }
-pub mod rate;
-pub mod replay;
-pub mod service;
-pub mod sum_tree;
-pub mod viz;
-
 /// Keeps large freed blocks in glibc's heap instead of returning them to the OS at once.
 ///
 /// Each DQN update allocates and frees several tensors of the network's size (760 KB for the

@@ -3,19 +3,7 @@
 //! Keeps the learner from overtraining on stale data when actors are slow, and from
 //! bursting through a backlog after a restart.
 
-use serde::{Deserialize, Serialize};
-
-/// Settings of the limiter.
-#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
-#[serde(deny_unknown_fields)]
-pub struct RateConfig {
-    /// Transitions sampled per transition inserted; 0 disables the limit.
-    pub samples_per_insert: f64,
-    /// Transitions the replay must hold before the first sample.
-    pub warmup: usize,
-    /// Slack, in sampled transitions, before sampling blocks.
-    pub error_buffer: f64,
-}
+pub use crawler_run::config::RateConfig;
 
 /// Counts inserts and samples since this process started (or since [`RateLimiter::reset`]).
 #[derive(Debug, Clone)]

@@ -17,7 +17,7 @@ fn main() {
     let seconds: u64 = std::env::var("SYSTEM_BENCH_SECONDS").ok().and_then(|s| s.parse().ok()).unwrap_or(90);
     let runs = tempfile::tempdir().unwrap();
     let extra = ["--set", "learner.status_every_s=5.0"];
-    let capacity = crawler_learner::config::TrainConfig::load(std::path::Path::new(CONFIG), &[])
+    let capacity = crawler_run::config::TrainConfig::load(std::path::Path::new(CONFIG), &[])
         .unwrap_or_else(|e| panic!("{CONFIG}: {e}"))
         .replay
         .capacity;

@@ -10,8 +10,8 @@ use std::sync::atomic::AtomicBool;
 
 use anyhow::Context;
 use clap::Parser;
-use crawler_actor::cli::{TlsArgs, TlsSide, check_tls_endpoints};
 use crawler_actor::node::{self, ActorOptions};
+use crawler_cli::{TlsArgs, TlsSide, check_tls_endpoints};
 
 #[derive(Debug, Parser)]
 #[command(version, about = "Simulate crawlers and feed a crawler learner over zenoh")]
@@ -56,16 +56,16 @@ fn parse_id(text: &str) -> Result<ActorId, String> {
 }
 
 fn main() -> anyhow::Result<()> {
-    crawler_actor::cli::init_logging();
+    crawler_cli::init_logging();
     let args = Args::parse();
-    crawler_actor::cli::serialize_tls_link_io(&args.connect);
+    crawler_cli::serialize_tls_link_io(&args.connect);
     let mut zenoh_overrides = Vec::new();
     if let Some(tls) = args.tls.files()? {
         check_tls_endpoints(&args.connect, "--connect")?;
         zenoh_overrides.extend(tls.zenoh_settings(TlsSide::Connect));
     }
     // Explicit --zenoh settings come last, so they win.
-    zenoh_overrides.extend(crawler_actor::cli::zenoh_overrides(&args.zenoh)?);
+    zenoh_overrides.extend(crawler_cli::zenoh_overrides(&args.zenoh)?);
     let options = ActorOptions {
         connect: args.connect,
         id: match args.id {
@@ -85,7 +85,7 @@ fn main() -> anyhow::Result<()> {
         .context("starting the async runtime")?;
     let result = runtime.block_on(async {
         let stop = Arc::new(AtomicBool::new(false));
-        tokio::spawn(node::stop_on_signal(Arc::clone(&stop)));
+        tokio::spawn(crawler_cli::stop_on_signal(Arc::clone(&stop)));
         node::run(options, stop).await
     });
     // A connect still waiting for an absent learner holds a blocking thread: do not wait for it.

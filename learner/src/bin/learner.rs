@@ -9,10 +9,11 @@ use std::time::{Duration, Instant};
 
 use anyhow::{Context, bail};
 use clap::Parser;
-use crawler_actor::cli::{TlsArgs, TlsSide, check_tls_endpoints};
-use crawler_learner::config::TrainConfig;
+use crawler_cli::{TlsArgs, TlsSide, check_tls_endpoints};
+use crawler_learner::checkpoint;
+use crawler_learner::service::access_control;
 use crawler_learner::service::{self, ServiceOptions};
-use crawler_learner::{access_control, checkpoint};
+use crawler_run::config::TrainConfig;
 use tracing::{info, warn};
 
 #[derive(Debug, Parser)]
@@ -61,7 +62,10 @@ struct Args {
 }
 
 fn main() -> anyhow::Result<()> {
-    crawler_actor::cli::init_logging();
+    crawler_cli::init_logging();
+    // Fail points (FAILPOINTS=…) exist only in `fault-injection` builds, the tests'; in any
+    // other build this reads nothing.
+    let _fail_points = fail::FailScenario::setup();
     let mut args = Args::parse();
     // Before any path is built from it and before any actor is started.
     for run in [&args.run, &args.resume].into_iter().flatten() {
@@ -98,7 +102,7 @@ fn main() -> anyhow::Result<()> {
         );
     }
     // Before the async runtime or libtorch start any thread.
-    crawler_actor::cli::serialize_tls_link_io(&config.learner.listen);
+    crawler_cli::serialize_tls_link_io(&config.learner.listen);
     let mut zenoh_overrides = Vec::new();
     let mut identity = access_control::Identity::None;
     if let Some(tls) = args.tls.files()? {
@@ -128,7 +132,7 @@ fn main() -> anyhow::Result<()> {
              and feed replay; use mutual TLS on untrusted networks"
         );
     }
-    zenoh_overrides.extend(crawler_actor::cli::zenoh_overrides(&args.zenoh)?);
+    zenoh_overrides.extend(crawler_cli::zenoh_overrides(&args.zenoh)?);
     let init_from = match &args.init_from {
         Some(path) => {
             let checkpoint = checkpoint::load(path).with_context(|| format!("--init-from {}", path.display()))?;
@@ -179,7 +183,7 @@ fn main() -> anyhow::Result<()> {
         zenoh_overrides,
     };
     let outcome = runtime.block_on(async {
-        tokio::spawn(crawler_actor::node::stop_on_signal(Arc::clone(&stop)));
+        tokio::spawn(crawler_cli::stop_on_signal(Arc::clone(&stop)));
         service::run(options, Arc::clone(&stop)).await
     });
     stop.store(true, Ordering::SeqCst);

@@ -34,7 +34,7 @@ struct Args {
 
 #[tokio::main(flavor = "multi_thread", worker_threads = 1)]
 async fn main() -> anyhow::Result<()> {
-    crawler_actor::cli::init_logging();
+    crawler_cli::init_logging();
     let args = Args::parse();
     let config = crawler_actor::node::client_config(std::slice::from_ref(&args.connect), &[])?;
     let session = zenoh::open(config).await.map_err(|e| anyhow::anyhow!("opening a zenoh session: {e}"))?;

@@ -18,7 +18,7 @@ use std::time::{Duration, Instant};
 
 use anyhow::Context;
 use clap::{Parser, Subcommand};
-use crawler_actor::cli::{TlsArgs, TlsSide};
+use crawler_cli::{TlsArgs, TlsSide};
 use crawler_proto::{self as proto, PROTOCOL_VERSION, keys};
 use crawler_tests::{FORGED_VERSION, valid_batch};
 use prost::Message;
@@ -94,10 +94,10 @@ enum Attack {
 }
 
 fn main() -> anyhow::Result<()> {
-    crawler_actor::cli::init_logging();
+    crawler_cli::init_logging();
     let args = Args::parse();
     // As the actor does, before any thread exists.
-    crawler_actor::cli::serialize_tls_link_io(std::slice::from_ref(&args.connect));
+    crawler_cli::serialize_tls_link_io(std::slice::from_ref(&args.connect));
     let runtime = tokio::runtime::Builder::new_multi_thread()
         .worker_threads(1)
         .enable_all()
@@ -111,7 +111,7 @@ async fn run(args: Args) -> anyhow::Result<()> {
     if let Some(tls) = args.tls.files()? {
         overrides.extend(tls.zenoh_settings(TlsSide::Connect));
     }
-    overrides.extend(crawler_actor::cli::zenoh_overrides(&args.zenoh)?);
+    overrides.extend(crawler_cli::zenoh_overrides(&args.zenoh)?);
     let config = crawler_actor::node::client_config(std::slice::from_ref(&args.connect), &overrides)?;
     let session = zenoh::open(config).await.map_err(|e| anyhow::anyhow!("opening a zenoh session: {e}"))?;
     match args.mode {

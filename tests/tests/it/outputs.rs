@@ -8,10 +8,10 @@ use std::path::Path;
 use std::process::{Command, Output};
 use std::time::Duration;
 
+use crawler_learner::algo::dqn::Dqn;
 use crawler_learner::checkpoint::{self, Progress};
-use crawler_learner::config::TrainConfig;
-use crawler_learner::dqn::Dqn;
-use crawler_learner::metrics;
+use crawler_run::config::TrainConfig;
+use crawler_run::metrics;
 use crawler_tests::{Learner, binary, repo_root};
 
 fn run(binary_name: &str, args: &[&str]) -> Output {
@@ -108,7 +108,7 @@ fn eval_runs_a_checkpoint_in_the_studys_layout() {
     // A checkpoint as the study's own policy would need: action repeat 1, 40 inputs,
     // 25 actions, hidden 512-256-128.
     let config = TrainConfig::load(&repo_root().join("configs/study.toml"), &[]).unwrap();
-    let dqn = Dqn::new(config.dqn_config());
+    let dqn = Dqn::new(config.network_spec(), config.dqn.clone());
     let dir = tempfile::tempdir().unwrap();
     let config_json = serde_json::to_value(&config).unwrap();
     checkpoint::save(dir.path(), &dqn, "study", &Progress::default(), &config_json, None, 1).unwrap();
@@ -228,7 +228,7 @@ fn mujoco_cross_check_agrees_on_layout_and_policy_and_runs_an_episode() {
 
     // Policy: a checkpoint's greedy actions agree for varied observations.
     let config = TrainConfig::load(&repo_root().join("configs/default.toml"), &[]).unwrap();
-    let dqn = Dqn::new(config.dqn_config());
+    let dqn = Dqn::new(config.network_spec(), config.dqn.clone());
     let dir = tempfile::tempdir().unwrap();
     checkpoint::save(
         dir.path(),
@@ -240,7 +240,7 @@ fn mujoco_cross_check_agrees_on_layout_and_policy_and_runs_an_episode() {
         1,
     )
     .unwrap();
-    let loaded = crawler_learner::evaluate::load_policy(dir.path(), &[]).unwrap();
+    let loaded = crawler_run::evaluate::load_policy(dir.path(), &[]).unwrap();
     let mut observations = Vec::new();
     let mut crawler = Crawler::new(config.env.clone(), 7);
     for step in 0..40u32 {

@@ -3,10 +3,10 @@
 #![allow(clippy::unwrap_used)] // Tests: a panic is a failure with a message.
 
 use crawler_actor::policy::{MlpPolicy, NetworkSpec};
-use crawler_learner::adam::{AdamConfig, FlatAdam};
+use crawler_learner::algo::adam::{AdamConfig, FlatAdam};
+use crawler_learner::algo::dqn::{Batch, Dqn, DqnConfig, LossKind, TargetUpdate};
+use crawler_learner::algo::network::QNetwork;
 use crawler_learner::checkpoint::encode_weights;
-use crawler_learner::dqn::{Batch, Dqn, DqnConfig, LossKind, TargetUpdate};
-use crawler_learner::network::QNetwork;
 use tch::{Kind, Tensor, nn, nn::OptimizerConfig};
 
 fn small() -> NetworkSpec {
@@ -99,13 +99,12 @@ fn forward_with(spec: &NetworkSpec, params: &[Tensor], x: &Tensor) -> Tensor {
 fn linear_dqn(double: bool, online: &[f32], target: &[f32]) -> Dqn {
     let spec = NetworkSpec { obs_dim: 2, hidden: vec![], num_actions: 3, layer_norm: false };
     let config = DqnConfig {
-        network: spec,
         gamma: 0.9,
         double,
         target_update: TargetUpdate::Hard { every: 1_000_000 },
         ..DqnConfig::default()
     };
-    let mut dqn = Dqn::new(config);
+    let mut dqn = Dqn::new(spec, config);
     dqn.online.load_flat(online).unwrap();
     dqn.target.load_flat(target).unwrap();
     dqn
@@ -145,14 +144,13 @@ fn double_and_vanilla_targets_match_a_hand_computed_example() {
 fn an_update_reduces_the_loss_and_hard_target_updates_copy_on_schedule() {
     for loss in [LossKind::Mse, LossKind::Huber] {
         let config = DqnConfig {
-            network: small(),
             lr: 1e-3,
             loss,
             max_grad_norm: Some(10.0),
             target_update: TargetUpdate::Hard { every: 5 },
             ..DqnConfig::default()
         };
-        let mut dqn = Dqn::new(config);
+        let mut dqn = Dqn::new(small(), config);
         let batch = Batch {
             observations: Tensor::randn([32, 40], (Kind::Float, tch::Device::Cpu)),
             actions: Tensor::randint(25, [32], (Kind::Int64, tch::Device::Cpu)),

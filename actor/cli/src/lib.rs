@@ -1,4 +1,12 @@
-//! Pieces both binaries (`actor`, `learner`) share.
+//! Process plumbing that every crawler binary shares (`actor`, `learner`, `eval`, `plot`,
+//! `render`, and the test helpers `probe` and `garbage`): logging, the mutual-TLS flags, the
+//! `--zenoh KEY=JSON5` overrides, the TLS-link workaround, and stopping on a signal.
+//!
+//! It lives in its own crate, not in the actor's library, so that the learner and the tools
+//! depend on it without depending on each other.
+
+use std::sync::Arc;
+use std::sync::atomic::{AtomicBool, Ordering};
 
 /// Logs go to stderr through `tracing`, filtered by `RUST_LOG` (default: info, zenoh warn),
 /// coloured only when stderr is a terminal (log files and `docker logs` stay plain).
@@ -177,6 +185,30 @@ pub fn check_tls_endpoints(endpoints: &[String], flag: &str) -> Result<(), TlsAr
         Some(plain) => Err(TlsArgsError::PlainEndpoint { flag: flag.to_string(), endpoint: plain.clone() }),
         None => Ok(()),
     }
+}
+
+/// Waits for Ctrl-C or SIGTERM, then sets `stop`.
+pub async fn stop_on_signal(stop: Arc<AtomicBool>) {
+    let ctrl_c = tokio::signal::ctrl_c();
+    #[cfg(unix)]
+    {
+        let mut term = match tokio::signal::unix::signal(tokio::signal::unix::SignalKind::terminate()) {
+            Ok(term) => term,
+            Err(_) => {
+                let _ = ctrl_c.await;
+                stop.store(true, Ordering::SeqCst);
+                return;
+            }
+        };
+        tokio::select! {
+            _ = ctrl_c => {}
+            _ = term.recv() => {}
+        }
+    }
+    #[cfg(not(unix))]
+    let _ = ctrl_c.await;
+    tracing::info!("signal received: stopping");
+    stop.store(true, Ordering::SeqCst);
 }
 
 #[cfg(test)]

@@ -3,7 +3,7 @@
 #![allow(clippy::unwrap_used)] // Tests: a panic is a failure with a message.
 
 use crawler_actor::policy::NetworkSpec;
-use crawler_learner::dqn::{Batch, Dqn, DqnConfig, TargetUpdate};
+use crawler_learner::algo::dqn::{Batch, Dqn, DqnConfig, TargetUpdate};
 use crawler_learner::replay::{Replay, ReplayConfig, SampledBatch, StreamId, Transition};
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
@@ -59,14 +59,10 @@ fn dqn_converges_to_q_star_on_a_chain() {
         state = if terminated { 0 } else { next };
     }
 
-    let config = DqnConfig {
-        network: NetworkSpec { obs_dim: N, hidden: vec![32], num_actions: 2, layer_norm: true },
-        gamma: GAMMA,
-        lr: 3e-3,
-        target_update: TargetUpdate::Hard { every: 100 },
-        ..DqnConfig::default()
-    };
-    let mut dqn = Dqn::new(config);
+    let network = NetworkSpec { obs_dim: N, hidden: vec![32], num_actions: 2, layer_norm: true };
+    let config =
+        DqnConfig { gamma: GAMMA, lr: 3e-3, target_update: TargetUpdate::Hard { every: 100 }, ..DqnConfig::default() };
+    let mut dqn = Dqn::new(network, config);
     let mut sample = SampledBatch::default();
     for _ in 0..4_000 {
         replay.sample(64, GAMMA, 0.0, &mut rng, &mut sample).unwrap();

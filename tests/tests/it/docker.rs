@@ -224,6 +224,28 @@ fn compose_trains_and_survives_a_killed_and_a_disconnected_actor() {
         .unwrap_or_else(|e| panic!("eval printed no JSON ({e}): {}", String::from_utf8_lossy(&eval.stdout)));
     assert!(report.to_string().contains("speed"), "{report}");
 
+    // The tools link no libtorch, so the small actor image evaluates checkpoints too.
+    let libraries = docker(&["run", "--rm", "--entrypoint", "ldd", "crawler-actor", "/usr/local/bin/eval"]);
+    assert!(!libraries.contains("torch") && !libraries.contains("not found"), "eval in the actor image: {libraries}");
+    let mount = format!("{}:/runs:ro", compose.run_dir().parent().unwrap().display());
+    let eval = docker(&[
+        "run",
+        "--rm",
+        "--entrypoint",
+        "eval",
+        "-v",
+        &mount,
+        "crawler-actor",
+        &in_container,
+        "--episodes",
+        "1",
+        "--seconds",
+        "2",
+    ]);
+    let report: serde_json::Value =
+        serde_json::from_str(&eval).unwrap_or_else(|e| panic!("eval in the actor image printed no JSON ({e}): {eval}"));
+    assert!(report["episodes"].as_array().is_some_and(|e| e.len() == 1), "{report}");
+
     // A graceful stop leaves a final checkpoint.
     compose.command(&["stop", "--timeout", "60", "learner"]);
     let checkpoint = crawler_learner::checkpoint::load(&checkpoints).unwrap();

@@ -151,17 +151,10 @@ impl QNetwork {
         });
     }
 
-    /// Every parameter as `(name, shape, values)`, in `nn.Sequential` order.
-    pub fn named_values(&self) -> Vec<(String, Vec<usize>, Vec<f32>)> {
-        let flat = self.flat.detach();
-        let values: Vec<f32> = Vec::<f32>::try_from(&flat).unwrap_or_default();
-        self.slots
-            .iter()
-            .map(|slot| {
-                let range = slot.offset..slot.offset + slot.info.numel();
-                (slot.info.name.clone(), slot.info.shape.clone(), values[range].to_vec())
-            })
-            .collect()
+    /// Every parameter's values, flat, in `nn.Sequential` order (the spec's).
+    pub fn flat_values(&self) -> Vec<f32> {
+        // A contiguous f32 CPU tensor always converts.
+        Vec::<f32>::try_from(&self.flat.detach()).unwrap_or_default()
     }
 
     /// Overwrites all parameters from a flat vector in slot order.

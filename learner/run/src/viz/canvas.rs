@@ -4,7 +4,6 @@
 //! palette for a whole animation makes every frame a plain copy with no quantisation.
 
 use std::io::Write;
-use std::path::Path;
 
 /// Colours, by index into [`PALETTE`].
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -46,14 +45,6 @@ pub const PALETTE: [[u8; 3]; 16] = [
     [255, 152, 150],
     [235, 243, 250],
     [205, 190, 160],
-];
-
-/// Series colours in order, each with its light variant.
-pub const SERIES: [(Colour, Colour); 4] = [
-    (Colour::Blue, Colour::LightBlue),
-    (Colour::Orange, Colour::LightOrange),
-    (Colour::Green, Colour::LightGreen),
-    (Colour::Red, Colour::LightRed),
 ];
 
 /// Pixels of one glyph side at scale 1.
@@ -227,19 +218,6 @@ impl Canvas {
                 }
             }
         }
-    }
-
-    /// Writes an 8-bit RGB PNG.
-    pub fn write_png(&self, path: &Path) -> std::io::Result<()> {
-        let file = std::io::BufWriter::new(std::fs::File::create(path)?);
-        let mut encoder = png::Encoder::new(file, self.width, self.height);
-        encoder.set_color(png::ColorType::Rgb);
-        encoder.set_depth(png::BitDepth::Eight);
-        let mut writer = encoder.write_header().map_err(std::io::Error::other)?;
-        let rgb: Vec<u8> = self.pixels.iter().flat_map(|&i| PALETTE[usize::from(i) % PALETTE.len()]).collect();
-        writer.write_image_data(&rgb).map_err(std::io::Error::other)?;
-        writer.finish().map_err(std::io::Error::other)?;
-        Ok(())
     }
 }
 

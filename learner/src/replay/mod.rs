@@ -13,60 +13,18 @@
 
 use std::collections::HashMap;
 
+pub use crawler_run::config::{PrioritizedConfig, ReplayConfig};
 use rand::Rng;
 use serde::{Deserialize, Serialize};
 
-use crate::sum_tree::SumTree;
+pub use sampler::Sampler;
+
+pub mod sampler;
+pub mod sum_tree;
 
 const HAS_TRANSITION: u8 = 1;
 const TERMINATED: u8 = 2;
 const TRUNCATED: u8 = 4;
-
-/// Proportional prioritised replay (Schaul et al. 2016).
-#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
-#[serde(deny_unknown_fields)]
-pub struct PrioritizedConfig {
-    /// Priority exponent α: 0 is uniform.
-    pub alpha: f64,
-    /// Importance-sampling exponent β at the start; it rises linearly to 1.
-    pub beta_start: f64,
-    /// Updates over which β reaches 1.
-    pub beta_updates: u64,
-    /// Added to |TD error| so no transition gets zero priority.
-    pub epsilon: f64,
-}
-
-impl Default for PrioritizedConfig {
-    fn default() -> Self {
-        Self { alpha: 0.6, beta_start: 0.4, beta_updates: 100_000, epsilon: 1e-3 }
-    }
-}
-
-impl PrioritizedConfig {
-    /// β after `updates` gradient updates.
-    pub fn beta(&self, updates: u64) -> f64 {
-        let progress = (updates as f64 / self.beta_updates.max(1) as f64).min(1.0);
-        self.beta_start + (1.0 - self.beta_start) * progress
-    }
-}
-
-/// Settings of the replay.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-#[serde(deny_unknown_fields)]
-pub struct ReplayConfig {
-    /// Slots (≈ transitions) held.
-    pub capacity: usize,
-    /// Steps summed into each return (1 is the study).
-    pub n_step: usize,
-    /// Prioritised sampling; uniform when absent.
-    pub prioritized: Option<PrioritizedConfig>,
-}
-
-impl Default for ReplayConfig {
-    fn default() -> Self {
-        Self { capacity: 500_000, n_step: 1, prioritized: None }
-    }
-}
 
 /// Identifies the sequence of transitions of one crawler of one actor.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Serialize, Deserialize)]
@@ -132,7 +90,9 @@ pub enum ReplayError {
 /// The replay buffer.
 #[derive(Debug, Clone, Serialize, Deserialize)]
 pub struct Replay {
-    config: ReplayConfig,
+    capacity: usize,
+    n_step: usize,
+    sampler: Sampler,
     obs_dim: usize,
     observations: Vec<f32>,
     actions: Vec<u8>,
@@ -146,23 +106,11 @@ pub struct Replay {
     filled: usize,
     transitions: usize,
     pending: HashMap<StreamId, Pending>,
-    tree: Option<SumTree>,
-    max_priority: f64,
     /// Transitions ever inserted.
     inserted: u64,
 }
 
 impl Replay {
-    /// Bytes the buffer's arrays take at `config.capacity` (None: beyond u64 or beyond the
-    /// u32 slot indices): one observation, action, reward, flags, link and stamp per slot,
-    /// plus the sum tree for prioritised replay.
-    pub fn bytes_needed(config: &ReplayConfig, obs_dim: usize) -> Option<u64> {
-        let capacity = u64::try_from(config.capacity).ok().filter(|&c| c <= u64::from(u32::MAX))?;
-        let per_slot = 4 * obs_dim as u64 + 1 + 4 + 1 + 4 + 8;
-        let tree = if config.prioritized.is_some() { 2 * 8 * capacity } else { 0 };
-        capacity.checked_mul(per_slot)?.checked_add(tree)
-    }
-
     pub fn new(config: ReplayConfig, obs_dim: usize) -> Result<Self, ReplayError> {
         let capacity = config.capacity;
         if capacity < 2 || capacity > u32::MAX as usize {
@@ -171,8 +119,10 @@ impl Replay {
         if !(1..=100).contains(&config.n_step) {
             return Err(ReplayError::NStep(config.n_step));
         }
-        let tree = config.prioritized.map(|_| SumTree::new(capacity));
         Ok(Self {
+            capacity,
+            n_step: config.n_step,
+            sampler: Sampler::new(config.prioritized, capacity),
             obs_dim,
             observations: vec![0.0; capacity * obs_dim],
             actions: vec![0; capacity],
@@ -185,15 +135,17 @@ impl Replay {
             filled: 0,
             transitions: 0,
             pending: HashMap::new(),
-            tree,
-            max_priority: 1.0,
             inserted: 0,
-            config,
         })
     }
 
-    pub fn config(&self) -> &ReplayConfig {
-        &self.config
+    /// The config this replay was built with.
+    pub fn config(&self) -> ReplayConfig {
+        ReplayConfig { capacity: self.capacity, n_step: self.n_step, prioritized: self.sampler.prioritized_config() }
+    }
+
+    pub fn sampler(&self) -> &Sampler {
+        &self.sampler
     }
 
     pub fn obs_dim(&self) -> usize {
@@ -212,7 +164,7 @@ impl Replay {
     /// Whether every stored observation and reward is finite (an audit for tests and
     /// diagnostics: ingest validation should make this always true).
     pub fn all_finite(&self) -> bool {
-        let slots = self.filled.min(self.config.capacity);
+        let slots = self.filled.min(self.capacity);
         self.observations[..slots * self.obs_dim].iter().all(|v| v.is_finite())
             && self.rewards[..slots].iter().all(|v| v.is_finite())
     }
@@ -251,9 +203,7 @@ impl Replay {
             HAS_TRANSITION | if t.terminated { TERMINATED } else { 0 } | if t.truncated { TRUNCATED } else { 0 };
         self.transitions += 1;
         self.inserted += 1;
-        if let Some(tree) = &mut self.tree {
-            tree.set(start, self.max_priority);
-        }
+        self.sampler.stored(start);
         if t.terminated || t.truncated {
             self.pending.remove(&stream);
         } else {
@@ -271,16 +221,14 @@ impl Replay {
         let slot = self.cursor;
         if self.flags[slot] & HAS_TRANSITION != 0 {
             self.transitions -= 1;
-            if let Some(tree) = &mut self.tree {
-                tree.set(slot, 0.0);
-            }
+            self.sampler.removed(slot);
         }
         self.flags[slot] = 0;
         self.observations[slot * self.obs_dim..(slot + 1) * self.obs_dim].copy_from_slice(observation);
         self.writes += 1;
         self.stamps[slot] = self.writes;
-        self.cursor = (self.cursor + 1) % self.config.capacity;
-        self.filled = (self.filled + 1).min(self.config.capacity);
+        self.cursor = (self.cursor + 1) % self.capacity;
+        self.filled = (self.filled + 1).min(self.capacity);
         slot
     }
 
@@ -305,8 +253,9 @@ impl Replay {
         out.discounts.clear();
         out.weights.clear();
         out.keys.clear();
-        match (&self.tree, self.config.prioritized) {
-            (Some(tree), Some(_)) => {
+        match &self.sampler {
+            Sampler::Prioritized(prioritized) => {
+                let tree = &prioritized.tree;
                 let total = tree.total();
                 let segment = total / batch as f64;
                 for i in 0..batch {
@@ -326,7 +275,7 @@ impl Replay {
                     *w /= max;
                 }
             }
-            _ => {
+            Sampler::Uniform => {
                 for _ in 0..batch {
                     let slot = self.uniform_slot(rng);
                     self.push_sample(slot, gamma, out);
@@ -361,7 +310,7 @@ impl Replay {
         let mut ret = 0.0;
         let mut discount = 1.0;
         let mut current = slot;
-        for step in 0..self.config.n_step {
+        for step in 0..self.n_step {
             ret += discount * f64::from(self.rewards[current]);
             discount *= gamma;
             let flags = self.flags[current];
@@ -370,7 +319,7 @@ impl Replay {
                 return (ret, 0.0, next);
             }
             let chain_continues =
-                step + 1 < self.config.n_step && flags & TRUNCATED == 0 && self.flags[next] & HAS_TRANSITION != 0;
+                step + 1 < self.n_step && flags & TRUNCATED == 0 && self.flags[next] & HAS_TRANSITION != 0;
             if !chain_continues {
                 return (ret, discount, next);
             }
@@ -381,16 +330,12 @@ impl Replay {
 
     /// Sets priorities from the absolute TD errors of a sampled batch.
     pub fn update_priorities(&mut self, keys: &[SampleKey], td_errors: &[f32]) {
-        let (Some(tree), Some(per)) = (&mut self.tree, self.config.prioritized) else { return };
         for (key, &td) in keys.iter().zip(td_errors) {
             let slot = key.slot as usize;
-            if self.stamps[slot] != key.stamp || self.flags[slot] & HAS_TRANSITION == 0 {
-                continue;
+            // Only the transition that was sampled: its slot may hold a newer one by now.
+            if self.stamps[slot] == key.stamp && self.flags[slot] & HAS_TRANSITION != 0 {
+                self.sampler.rescore(slot, td);
             }
-            let td = if td.is_finite() { f64::from(td.abs()) } else { self.max_priority };
-            let priority = (td + per.epsilon).powf(per.alpha);
-            tree.set(slot, priority);
-            self.max_priority = self.max_priority.max(priority);
         }
     }
 
@@ -402,7 +347,7 @@ impl Replay {
             + self.flags.capacity()
             + self.next.capacity() * size_of::<u32>()
             + self.stamps.capacity() * size_of::<u64>()
-            + self.tree.as_ref().map_or(0, SumTree::memory_bytes)
+            + self.sampler.memory_bytes()
     }
 
     /// The information a transition carries, stored once: one observation, the action, the
@@ -593,7 +538,8 @@ mod tests {
         // A stale update for an overwritten slot is ignored.
         let stale = SampleKey { slot: keys[0].slot, stamp: keys[0].stamp + 1000 };
         replay.update_priorities(&[stale], &[100.0]);
-        assert_eq!(replay.tree.as_ref().unwrap().get(keys[0].slot as usize), 1.0);
+        let Sampler::Prioritized(p) = &replay.sampler else { panic!("not prioritised") };
+        assert_eq!(p.tree.get(keys[0].slot as usize), 1.0);
     }
 
     #[test]

@@ -9,7 +9,7 @@
 use std::path::PathBuf;
 
 use clap::Parser;
-use crawler_learner::evaluate::{evaluation_env, greedy_episode, load_policy};
+use crawler_run::evaluate::{evaluation_env, greedy_episode, load_policy};
 use serde::Serialize;
 use tracing::info;
 
@@ -65,7 +65,7 @@ fn mean_std(values: impl Iterator<Item = f64> + Clone) -> MeanStd {
 }
 
 fn main() -> anyhow::Result<()> {
-    crawler_actor::cli::init_logging();
+    crawler_cli::init_logging();
     let args = Args::parse();
     let loaded = load_policy(&args.checkpoint, &args.overrides)?;
     let mut env = evaluation_env(&loaded.config.env, args.seconds)?;

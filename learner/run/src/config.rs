@@ -7,10 +7,6 @@ use crawler_actor::policy::NetworkSpec;
 use crawler_actor::settings::{ActorSettings, Exploration};
 use serde::{Deserialize, Serialize};
 
-use crate::dqn::{DqnConfig, LossKind, TargetUpdate};
-use crate::rate::RateConfig;
-use crate::replay::ReplayConfig;
-
 #[derive(Debug, thiserror::Error)]
 pub enum ConfigError {
     #[error("cannot read config file {path}: {source}")]
@@ -41,37 +37,136 @@ impl Default for NetworkSection {
     }
 }
 
+/// The `[dqn]` section: the Double DQN update and its minibatches. The defaults are the study's.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]
-pub struct DqnSection {
+pub struct DqnConfig {
+    /// Discount factor γ.
     pub gamma: f64,
+    /// Adam's learning rate.
     pub lr: f64,
     pub adam_eps: f64,
+    /// Double DQN (the online net picks the next action, the target net values it);
+    /// false gives vanilla DQN (the target net's max).
     pub double: bool,
     pub loss: LossKind,
+    /// Clip the gradient's global L2 norm to this; none when absent.
     pub max_grad_norm: Option<f64>,
     pub target_update: TargetUpdate,
+    /// Multiplies the (n-step) returns in the TD target: Q-values scale with it, so it moves
+    /// them relative to the Huber loss's fixed threshold of 1 and to Adam's ε.
     pub reward_scale: f64,
+    /// Transitions per gradient update.
     pub batch_size: usize,
+    /// Seed of torch's RNG for the initial weights, and of replay sampling.
     pub seed: u64,
 }
 
-impl Default for DqnSection {
+impl Default for DqnConfig {
     fn default() -> Self {
-        let dqn = DqnConfig::default();
         Self {
-            gamma: dqn.gamma,
-            lr: dqn.lr,
-            adam_eps: dqn.adam_eps,
-            double: dqn.double,
-            loss: dqn.loss,
-            max_grad_norm: dqn.max_grad_norm,
-            target_update: dqn.target_update,
-            reward_scale: dqn.reward_scale,
+            gamma: 0.99,
+            lr: 5e-4,
+            adam_eps: 1e-8,
+            double: true,
+            loss: LossKind::Mse,
+            max_grad_norm: None,
+            target_update: TargetUpdate::Hard { every: 25_000 },
+            reward_scale: 1.0,
             batch_size: 32,
             seed: 0,
         }
     }
+}
+
+/// How the TD error becomes a loss.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum LossKind {
+    /// Squared error, as in the study.
+    Mse,
+    /// Huber loss with δ = 1 (smooth L1).
+    Huber,
+}
+
+/// How the target network follows the online one.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[serde(tag = "kind", rename_all = "lowercase", deny_unknown_fields)]
+pub enum TargetUpdate {
+    /// Copy the online weights every `every` updates.
+    Hard { every: u64 },
+    /// θ⁻ ← (1 − τ)·θ⁻ + τ·θ after every update.
+    Polyak { tau: f64 },
+}
+
+/// Proportional prioritised replay (Schaul et al. 2016).
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct PrioritizedConfig {
+    /// Priority exponent α: 0 is uniform.
+    pub alpha: f64,
+    /// Importance-sampling exponent β at the start; it rises linearly to 1.
+    pub beta_start: f64,
+    /// Updates over which β reaches 1.
+    pub beta_updates: u64,
+    /// Added to |TD error| so no transition gets zero priority.
+    pub epsilon: f64,
+}
+
+impl Default for PrioritizedConfig {
+    fn default() -> Self {
+        Self { alpha: 0.6, beta_start: 0.4, beta_updates: 100_000, epsilon: 1e-3 }
+    }
+}
+
+impl PrioritizedConfig {
+    /// β after `updates` gradient updates.
+    pub fn beta(&self, updates: u64) -> f64 {
+        let progress = (updates as f64 / self.beta_updates.max(1) as f64).min(1.0);
+        self.beta_start + (1.0 - self.beta_start) * progress
+    }
+}
+
+/// The `[replay]` section.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct ReplayConfig {
+    /// Slots (≈ transitions) held.
+    pub capacity: usize,
+    /// Steps summed into each return (1 is the study).
+    pub n_step: usize,
+    /// Prioritised sampling; uniform when absent.
+    pub prioritized: Option<PrioritizedConfig>,
+}
+
+impl Default for ReplayConfig {
+    fn default() -> Self {
+        Self { capacity: 500_000, n_step: 1, prioritized: None }
+    }
+}
+
+impl ReplayConfig {
+    /// Bytes the replay buffer's arrays take at `config.capacity` (None: beyond u64 or beyond the
+    /// u32 slot indices): one observation, action, reward, flags, link and stamp per slot,
+    /// plus the sum tree for prioritised replay.
+    pub fn bytes_needed(&self, obs_dim: usize) -> Option<u64> {
+        let capacity = u64::try_from(self.capacity).ok().filter(|&c| c <= u64::from(u32::MAX))?;
+        let per_slot = 4 * obs_dim as u64 + 1 + 4 + 1 + 4 + 8;
+        let tree = if self.prioritized.is_some() { 2 * 8 * capacity } else { 0 };
+        capacity.checked_mul(per_slot)?.checked_add(tree)
+    }
+}
+
+/// The `[rate]` section: the samples-per-insert limiter (after Reverb's `SampleToInsertRatio`).
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct RateConfig {
+    /// Transitions sampled per transition inserted; 0 disables the limit.
+    pub samples_per_insert: f64,
+    /// Transitions the replay must hold before the first sample.
+    pub warmup: usize,
+    /// Slack, in sampled transitions, before sampling blocks.
+    pub error_buffer: f64,
 }
 
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -154,7 +249,7 @@ impl Default for LearnerSection {
 pub struct TrainConfig {
     pub env: EnvConfig,
     pub network: NetworkSection,
-    pub dqn: DqnSection,
+    pub dqn: DqnConfig,
     pub replay: ReplayConfig,
     pub rate: RateConfig,
     pub exploration: Exploration,
@@ -214,7 +309,7 @@ impl TrainConfig {
     pub fn check_memory(&self, total: Option<u64>) -> Result<(), ConfigError> {
         let Some(total) = total else { return Ok(()) };
         let mib = |bytes: u64| bytes >> 20;
-        let needed = crate::replay::Replay::bytes_needed(&self.replay, OBS_DIM);
+        let needed = self.replay.bytes_needed(OBS_DIM);
         if needed.is_none_or(|n| n > total) {
             return Err(ConfigError::TooLarge {
                 what: "the replay buffer",
@@ -335,22 +430,6 @@ impl TrainConfig {
             hidden: self.network.hidden.clone(),
             num_actions: self.env.num_actions(),
             layer_norm: self.network.layer_norm,
-        }
-    }
-
-    pub fn dqn_config(&self) -> DqnConfig {
-        let d = &self.dqn;
-        DqnConfig {
-            network: self.network_spec(),
-            gamma: d.gamma,
-            lr: d.lr,
-            adam_eps: d.adam_eps,
-            double: d.double,
-            loss: d.loss,
-            max_grad_norm: d.max_grad_norm,
-            target_update: d.target_update,
-            reward_scale: d.reward_scale,
-            seed: d.seed,
         }
     }
 

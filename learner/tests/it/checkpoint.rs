@@ -5,22 +5,22 @@
 use std::fs;
 
 use crawler_actor::policy::NetworkSpec;
+use crawler_learner::algo::dqn::{Batch, Dqn, DqnConfig};
 use crawler_learner::checkpoint::{self, CheckpointError, Progress};
-use crawler_learner::dqn::{Batch, Dqn, DqnConfig};
 use crawler_learner::replay::{Replay, ReplayConfig, SampledBatch, StreamId, Transition};
 use rand::SeedableRng;
 use tch::{Kind, Tensor};
 
+fn network() -> NetworkSpec {
+    NetworkSpec { obs_dim: 40, hidden: vec![64, 32], num_actions: 25, layer_norm: true }
+}
+
 fn config(seed: u64) -> DqnConfig {
-    DqnConfig {
-        network: NetworkSpec { obs_dim: 40, hidden: vec![64, 32], num_actions: 25, layer_norm: true },
-        seed,
-        ..DqnConfig::default()
-    }
+    DqnConfig { seed, ..DqnConfig::default() }
 }
 
 fn trained(seed: u64) -> Dqn {
-    let mut dqn = Dqn::new(config(seed));
+    let mut dqn = Dqn::new(network(), config(seed));
     for _ in 0..3 {
         let batch = Batch {
             observations: Tensor::randn([16, 40], (Kind::Float, tch::Device::Cpu)),
@@ -55,7 +55,7 @@ fn a_round_trip_gives_bit_identical_q_values_and_state() {
     assert_eq!(loaded.meta.run_id, "run-a");
     assert_eq!(loaded.meta.progress, progress(3));
     assert_eq!(loaded.meta.config, run_config);
-    let mut restored = Dqn::new(config(99));
+    let mut restored = Dqn::new(network(), config(99));
     restored.restore(&loaded).unwrap();
 
     let inputs = Tensor::randn([8, 40], (Kind::Float, tch::Device::Cpu));
@@ -109,8 +109,8 @@ fn a_checkpoint_of_another_network_is_rejected() {
     let dir = tempfile::tempdir().unwrap();
     checkpoint::save(dir.path(), &trained(3), "run", &progress(1), &serde_json::Value::Null, None, 3).unwrap();
     let loaded = checkpoint::load(dir.path()).unwrap();
-    let other = DqnConfig { network: NetworkSpec { hidden: vec![64, 16], ..config(0).network }, ..config(0) };
-    let err = Dqn::new(other).restore(&loaded).unwrap_err().to_string();
+    let other = NetworkSpec { hidden: vec![64, 16], ..network() };
+    let err = Dqn::new(other, config(0)).restore(&loaded).unwrap_err().to_string();
     assert!(err.contains("network") && err.contains("16"), "{err}");
 }
 

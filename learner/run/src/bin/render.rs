@@ -8,8 +8,8 @@ use std::path::PathBuf;
 
 use anyhow::Context;
 use clap::Parser;
-use crawler_learner::evaluate::{evaluation_env, greedy_episode, load_policy};
-use crawler_learner::viz::{Canvas, Colour, GifWriter, SideView, frame_stride};
+use crawler_run::evaluate::{evaluation_env, greedy_episode, load_policy};
+use crawler_run::viz::{Canvas, Colour, GifWriter, SideView, frame_stride};
 use tracing::info;
 
 #[derive(Debug, Parser)]
@@ -40,7 +40,7 @@ struct Args {
 }
 
 fn main() -> anyhow::Result<()> {
-    crawler_actor::cli::init_logging();
+    crawler_cli::init_logging();
     let args = Args::parse();
     let loaded = load_policy(&args.checkpoint, &args.overrides)?;
     let env = evaluation_env(&loaded.config.env, args.seconds)?;

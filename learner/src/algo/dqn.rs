@@ -1,72 +1,11 @@
 //! The Double DQN update: TD targets, loss, Adam and target-network upkeep.
 
 use crawler_actor::policy::NetworkSpec;
-use serde::{Deserialize, Serialize};
+pub use crawler_run::config::{DqnConfig, LossKind, TargetUpdate};
 use tch::{Kind, Reduction, Tensor};
 
-use crate::adam::{AdamConfig, FlatAdam};
-use crate::network::QNetwork;
-
-/// How the TD error becomes a loss.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
-#[serde(rename_all = "lowercase")]
-pub enum LossKind {
-    /// Squared error, as in the study.
-    Mse,
-    /// Huber loss with δ = 1 (smooth L1).
-    Huber,
-}
-
-/// How the target network follows the online one.
-#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
-#[serde(tag = "kind", rename_all = "lowercase", deny_unknown_fields)]
-pub enum TargetUpdate {
-    /// Copy the online weights every `every` updates.
-    Hard { every: u64 },
-    /// θ⁻ ← (1 − τ)·θ⁻ + τ·θ after every update.
-    Polyak { tau: f64 },
-}
-
-/// Settings of the DQN update.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-#[serde(deny_unknown_fields)]
-pub struct DqnConfig {
-    pub network: NetworkSpec,
-    /// Discount factor γ.
-    pub gamma: f64,
-    /// Adam's learning rate.
-    pub lr: f64,
-    pub adam_eps: f64,
-    /// Double DQN (the online net picks the next action, the target net values it);
-    /// false gives vanilla DQN (the target net's max).
-    pub double: bool,
-    pub loss: LossKind,
-    /// Clip the gradient's global L2 norm to this; none when absent.
-    pub max_grad_norm: Option<f64>,
-    pub target_update: TargetUpdate,
-    /// Multiplies the (n-step) returns in the TD target: Q-values scale with it, so it moves
-    /// them relative to the Huber loss's fixed threshold of 1 and to Adam's ε.
-    pub reward_scale: f64,
-    /// Seed of torch's RNG for the initial weights.
-    pub seed: u64,
-}
-
-impl Default for DqnConfig {
-    fn default() -> Self {
-        Self {
-            network: NetworkSpec::study(),
-            gamma: 0.99,
-            lr: 5e-4,
-            adam_eps: 1e-8,
-            double: true,
-            loss: LossKind::Mse,
-            max_grad_norm: None,
-            target_update: TargetUpdate::Hard { every: 25_000 },
-            reward_scale: 1.0,
-            seed: 0,
-        }
-    }
-}
+use super::adam::{AdamConfig, FlatAdam};
+use super::network::QNetwork;
 
 /// One sampled minibatch, already as tensors. `discount` is γⁿ for an n-step transition that
 /// bootstraps and 0 for one that ended in termination.
@@ -101,6 +40,8 @@ pub struct UpdateStats {
 /// Online and target Q-networks with their optimiser.
 #[derive(Debug)]
 pub struct Dqn {
+    /// The Q-network's shape (online and target alike).
+    pub network: NetworkSpec,
     pub config: DqnConfig,
     pub online: QNetwork,
     pub target: QNetwork,
@@ -110,14 +51,14 @@ pub struct Dqn {
 }
 
 impl Dqn {
-    pub fn new(config: DqnConfig) -> Self {
+    pub fn new(network: NetworkSpec, config: DqnConfig) -> Self {
         tch::manual_seed(config.seed as i64);
-        let online = QNetwork::new(&config.network, true);
-        let mut target = QNetwork::new(&config.network, false);
+        let online = QNetwork::new(&network, true);
+        let mut target = QNetwork::new(&network, false);
         target.copy_from(&online);
         let adam = AdamConfig { lr: config.lr, eps: config.adam_eps, ..AdamConfig::default() };
         let optimizer = FlatAdam::new(online.flat().numel(), adam);
-        Self { config, online, target, optimizer, updates: 0 }
+        Self { network, config, online, target, optimizer, updates: 0 }
     }
 
     /// The TD target scale · r + discount · Q⁻(s', a*) with a* chosen by the online net

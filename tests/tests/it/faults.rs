@@ -56,7 +56,7 @@ fn a_learner_killed_with_sigkill_resumes_the_run_and_running_actors_reconnect() 
     let settings = ["--set", "learner.checkpoint_every=100", "--set", "rate.warmup=2000"];
     // Each save pauses before its rename: killed there, the learner has published 20 versions
     // past the checkpoint it will resume from, so the actors hold newer numbers than it.
-    let pause = [("CRAWLER_FAULT_CHECKPOINT_PAUSE_MS", "400")];
+    let pause = [("FAILPOINTS", "checkpoint-before-rename=sleep(400)")];
     let mut learner = Learner::start_on_with_env(port, SMOKE, runs.path(), "kill-learner", 0, &settings, &pause);
     let mut actors: Vec<Actor> = (0..2).map(|id| Actor::start(port, id, "kill-learner", runs.path())).collect();
     let checkpoints = runs.path().join("kill-learner/checkpoints");
@@ -203,7 +203,7 @@ fn a_kill_during_a_checkpoint_write_keeps_the_previous_checkpoint_and_the_run_re
     let port = free_port();
     let checkpoints = runs.path().join("torn/checkpoints");
     // Every save pauses 1.5 s between writing its files and renaming them into place.
-    let pause = [("CRAWLER_FAULT_CHECKPOINT_PAUSE_MS", "1500")];
+    let pause = [("FAILPOINTS", "checkpoint-before-rename=sleep(1500)")];
     let mut learner = Learner::start_on_with_env(port, SMOKE, runs.path(), "torn", 2, &[], &pause);
     let start = Instant::now();
     let partial = loop {

@@ -1,0 +1,14 @@
+//! Integration tests that run the real binaries on loopback, one test binary for all of
+//! them (libtorch links once):
+//! - [`distributed`]: training, resume, actors joining and leaving;
+//! - [`faults`]: SIGKILL of actors and learners, a kill inside a checkpoint write, garbage;
+//! - [`outputs`]: metrics files, plots, the GIF, eval, transfer, the MuJoCo cross-check;
+//! - [`security`]: mutual TLS and the access-control policy under attack;
+//! - [`docker`]: the compose deployments (`#[ignore]`d; scripts/test runs them where an
+//!   engine answers, with `-- --ignored docker::`).
+
+mod distributed;
+mod docker;
+mod faults;
+mod outputs;
+mod security;
