@@ -99,14 +99,14 @@ pub fn serde_json_list(items: &[String]) -> String {
 
 /// Weights the simulation can act with.
 #[derive(Debug)]
-struct LoadedPolicy {
-    /// The learner process that published these; see [`LoadedPolicy::order`].
+struct PublishedPolicy {
+    /// The learner process that published these; see [`PublishedPolicy::order`].
     session: u64,
     version: u64,
     policy: MlpPolicy,
 }
 
-impl LoadedPolicy {
+impl PublishedPolicy {
     /// (learner session, version): the order in which weights supersede one another.
     fn order(&self) -> (u64, u64) {
         (self.session, self.version)
@@ -184,13 +184,13 @@ struct WeightsFeed {
     run_id: String,
     /// The shape this env needs (obs and action counts; hidden layers come with the weights).
     expected: NetworkSpec,
-    policy_tx: Arc<watch::Sender<Option<Arc<LoadedPolicy>>>>,
+    policy_tx: Arc<watch::Sender<Option<Arc<PublishedPolicy>>>>,
 }
 
 impl WeightsFeed {
-    fn new(run_id: &str, num_actions: usize) -> (Self, watch::Receiver<Option<Arc<LoadedPolicy>>>) {
+    fn new(run_id: &str, num_actions: usize) -> (Self, watch::Receiver<Option<Arc<PublishedPolicy>>>) {
         let expected = NetworkSpec { obs_dim: OBS_DIM, hidden: vec![], num_actions, layer_norm: true };
-        let (policy_tx, policy_rx) = watch::channel::<Option<Arc<LoadedPolicy>>>(None);
+        let (policy_tx, policy_rx) = watch::channel::<Option<Arc<PublishedPolicy>>>(None);
         (Self { run_id: run_id.to_string(), expected, policy_tx: Arc::new(policy_tx) }, policy_rx)
     }
 
@@ -213,7 +213,7 @@ impl WeightsFeed {
     async fn wait_for_first(
         &self,
         session: &zenoh::Session,
-        policy_rx: &watch::Receiver<Option<Arc<LoadedPolicy>>>,
+        policy_rx: &watch::Receiver<Option<Arc<PublishedPolicy>>>,
         stop: &AtomicBool,
     ) {
         let joined = Instant::now();
@@ -438,7 +438,7 @@ async fn fetch_run_info(
     Err(NodeError::StoppedBeforeLearnerAnswered)
 }
 
-fn load_weights(bytes: &[u8], run_id: &str, expected: &NetworkSpec) -> Result<LoadedPolicy, NodeError> {
+fn load_weights(bytes: &[u8], run_id: &str, expected: &NetworkSpec) -> Result<PublishedPolicy, NodeError> {
     let weights = proto::validate::weights(bytes, run_id).map_err(NodeError::WeightsRejected)?;
     // Validation guarantees a network spec within the protocol's size limits.
     let spec = weights.network.as_ref().map(NetworkSpec::from).ok_or(NodeError::WeightsWithoutNetwork)?;
@@ -451,7 +451,7 @@ fn load_weights(bytes: &[u8], run_id: &str, expected: &NetworkSpec) -> Result<Lo
         });
     }
     let policy = MlpPolicy::from_safetensors(&weights.safetensors, &spec)?;
-    Ok(LoadedPolicy { session: weights.learner_session, version: weights.version, policy })
+    Ok(PublishedPolicy { session: weights.learner_session, version: weights.version, policy })
 }
 
 /// The simulation loop: act, step, batch transitions, report episodes.
@@ -459,7 +459,7 @@ fn simulate(
     options: &ActorOptions,
     run_id: &str,
     settings: &ActorSettings,
-    mut policy_rx: watch::Receiver<Option<Arc<LoadedPolicy>>>,
+    mut policy_rx: watch::Receiver<Option<Arc<PublishedPolicy>>>,
     out: &mpsc::Sender<Outgoing>,
     stop: &AtomicBool,
     counters: &Counters,

@@ -521,7 +521,7 @@ mod tests {
     /// does: a line that sets a key carries a comment.
     #[test]
     fn every_preset_loads_and_comments_each_knob() {
-        let configs = Path::new(env!("CARGO_MANIFEST_DIR")).join("../configs");
+        let configs = Path::new(env!("CARGO_MANIFEST_DIR")).join("../../configs");
         let mut presets: Vec<_> = std::fs::read_dir(&configs)
             .unwrap()
             .map(|entry| entry.unwrap().path())

@@ -20,12 +20,18 @@ fn run(binary_name: &str, args: &[&str]) -> Output {
     output
 }
 
-fn png_size(path: &Path) -> (u32, u32) {
+/// A PNG's size and its pixels as RGB.
+fn png_pixels(path: &Path) -> ((u32, u32), Vec<[u8; 3]>) {
     let decoder = png::Decoder::new(std::io::BufReader::new(std::fs::File::open(path).unwrap()));
     let mut reader = decoder.read_info().unwrap();
     let mut buffer = vec![0; reader.output_buffer_size().unwrap()];
     let info = reader.next_frame(&mut buffer).unwrap();
-    (info.width, info.height)
+    let rgb = buffer.chunks(info.color_type.samples()).map(|p| [p[0], p[1], p[2]]).collect();
+    ((info.width, info.height), rgb)
+}
+
+fn png_size(path: &Path) -> (u32, u32) {
+    png_pixels(path).0
 }
 
 #[test]
@@ -78,9 +84,19 @@ fn a_run_writes_metrics_that_plot_and_render_turn_into_pictures() {
     let output = run("plot", &[run_dir.to_str().unwrap(), "--out", plots.to_str().unwrap()]);
     let written: Vec<String> = String::from_utf8(output.stdout).unwrap().lines().map(String::from).collect();
     assert_eq!(written.len(), 3, "{written:?}");
-    assert_eq!(png_size(&plots.join("learning_curves.png")), (960, 900));
-    assert_eq!(png_size(&plots.join("training.png")), (960, 1200));
-    assert_eq!(png_size(&plots.join("joint_angles.png")), (960, 400));
+    // Three panels (speed per actor, distance, duration; no evaluator ran), 320 px each.
+    let (size, pixels) = png_pixels(&plots.join("learning_curves.png"));
+    assert_eq!(size, (1000, 960));
+    // One curve per actor in its own colour (plot's first two series colours): its episodes
+    // as light dots, which no legend draws, and the smoothed line, bold, beyond the legend's
+    // 18 × 3 px swatch.
+    for (id, bold, light) in [(0, [31, 119, 180], [174, 199, 232]), (1, [255, 127, 14], [255, 187, 120])] {
+        let count = |colour: [u8; 3]| pixels.iter().filter(|p| **p == colour).count();
+        assert!(count(light) >= 4, "actor {id}'s episodes ({light:?}): {} pixels", count(light));
+        assert!(count(bold) > 54, "actor {id}'s curve ({bold:?}): {} pixels", count(bold));
+    }
+    assert_eq!(png_size(&plots.join("training.png")), (1000, 1280));
+    assert_eq!(png_size(&plots.join("joint_angles.png")), (1000, 420));
 
     let gif_path = runs.path().join("gait.gif");
     let checkpoints = run_dir.join("checkpoints");
