@@ -593,6 +593,9 @@ fn pose_frame(world: &PhysicsWorld, handles: &Handles, time: f32) -> PoseFrame {
 
 /// Builds the crawler's world with the base at rest and the joints at (q1, q2). If the arm
 /// would reach into the floor, the whole crawler is lifted just clear of it.
+///
+/// Long on purpose: it follows the MJCF body by body (base, link 1, link 2, tip, floor, the two
+/// hinges and their soft limits), so that each block can be read against the model file.
 fn build_world(config: &EnvConfig, physics: &EpisodePhysics, q1: f32, q2: f32) -> (PhysicsWorld, Handles) {
     let integration_parameters = IntegrationParameters {
         dt: config.dt,

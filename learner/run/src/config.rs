@@ -322,6 +322,9 @@ impl TrainConfig {
     }
 
     /// Checks every value against its allowed range; the error names the key.
+    ///
+    /// Long on purpose: one flat check per key, in the order of the presets' sections, so that
+    /// a new knob's check has one obvious place and every message names its key.
     pub fn validate(&self) -> Result<(), ConfigError> {
         let invalid = |key: &str, value: String, allowed: &str| ConfigError::Invalid {
             key: key.to_string(),

@@ -67,33 +67,7 @@ fn main() -> anyhow::Result<()> {
     // other build this reads nothing.
     let _fail_points = fail::FailScenario::setup();
     let mut args = Args::parse();
-    // Before any path is built from it and before any actor is started.
-    for run in [&args.run, &args.resume].into_iter().flatten() {
-        crawler_proto::keys::check_run_id(run)?;
-    }
-    if args.or_resume
-        && let Some(run) = &args.run
-    {
-        let runs_dir = runs_dir_of(&args)?;
-        if checkpoint::list(&runs_dir.join(run).join("checkpoints")).is_ok_and(|l| !l.is_empty()) {
-            info!(run = %run, "the run has checkpoints: resuming it");
-            args.resume = args.run.take();
-        }
-    }
-    let (config, run_id, resume) = match &args.resume {
-        Some(run) => {
-            let runs_dir = runs_dir_of(&args)?;
-            let checkpoint = checkpoint::load(&runs_dir.join(run).join("checkpoints"))
-                .with_context(|| format!("resuming run `{run}`"))?;
-            let config = TrainConfig::from_json(&checkpoint.meta.config, "the checkpoint's config", &args.overrides)?;
-            (config, run.clone(), Some(checkpoint))
-        }
-        None => {
-            let config = TrainConfig::load(&args.config, &args.overrides)?;
-            let run_id = args.run.clone().unwrap_or_else(default_run_id);
-            (config, run_id, None)
-        }
-    };
+    let (config, run_id, resume) = run_to_start(&mut args)?;
     let run_dir = Path::new(&config.learner.runs_dir).join(&run_id);
     if resume.is_none() && run_dir.join("checkpoints").exists() {
         bail!(
@@ -103,51 +77,9 @@ fn main() -> anyhow::Result<()> {
     }
     // Before the async runtime or libtorch start any thread.
     crawler_cli::serialize_tls_link_io(&config.learner.listen);
-    let mut zenoh_overrides = Vec::new();
-    let mut identity = access_control::Identity::None;
-    if let Some(tls) = args.tls.files()? {
-        check_tls_endpoints(&config.learner.listen, "learner.listen")?;
-        if args.actors > 0 {
-            bail!(
-                "with mutual TLS the learner starts no local actors (they would need certificates of their own): \
-                 pass --actors 0 and start actors with --tls-ca/--tls-cert/--tls-key"
-            );
-        }
-        zenoh_overrides.extend(tls.zenoh_settings(TlsSide::Listen));
-        identity = access_control::Identity::Certificates;
-        info!("mutual TLS on; access control: actors and observers by certificate CN, everything else denied");
-    } else if service::listens_beyond_loopback(&config.learner.listen) {
-        if !(args.allow_plain_remote || config.learner.allow_plain_remote) {
-            bail!(
-                "learner.listen {:?} accepts unauthenticated plain TCP from other hosts: anyone who reaches the \
-                 port could join as an actor and feed replay. Listen on 127.0.0.1, use mutual TLS \
-                 (--tls-ca/--tls-cert/--tls-key, see deploy/README.md), or on a trusted network opt in with \
-                 --allow-plain-remote (learner.allow_plain_remote = true)",
-                config.learner.listen
-            );
-        }
-        warn!(
-            listen = ?config.learner.listen,
-            "plain TCP beyond loopback (--allow-plain-remote): anyone who reaches this port can join as an actor \
-             and feed replay; use mutual TLS on untrusted networks"
-        );
-    }
+    let (identity, mut zenoh_overrides) = network_access(&args, &config)?;
     zenoh_overrides.extend(crawler_cli::zenoh_overrides(&args.zenoh)?);
-    let init_from = match &args.init_from {
-        Some(path) => {
-            let checkpoint = checkpoint::load(path).with_context(|| format!("--init-from {}", path.display()))?;
-            if checkpoint.meta.network != config.network_spec() {
-                bail!(
-                    "--init-from {}: its network {:?} differs from this config's {:?}; set network.* to match",
-                    path.display(),
-                    checkpoint.meta.network,
-                    config.network_spec()
-                );
-            }
-            Some(checkpoint)
-        }
-        None => None,
-    };
+    let init_from = args.init_from.as_deref().map(|path| transfer_source(path, &config)).transpose()?;
 
     let stop = Arc::new(AtomicBool::new(false));
     let runtime = tokio::runtime::Builder::new_multi_thread()
@@ -155,33 +87,9 @@ fn main() -> anyhow::Result<()> {
         .enable_all()
         .build()
         .context("starting the async runtime")?;
-    let local_endpoint = local_endpoint(&config.learner.listen[0])?;
-    let mut children = Vec::new();
-    if args.actors > 0 {
-        let actor_bin = match &args.actor_bin {
-            Some(path) => path.clone(),
-            None => std::env::current_exe()?.with_file_name("actor"),
-        };
-        for id in 0..args.actors {
-            match spawn_actor(&actor_bin, &local_endpoint, id, &run_id) {
-                Ok(child) => children.push(child),
-                Err(e) => {
-                    reap(children, Duration::ZERO);
-                    return Err(e);
-                }
-            }
-        }
-        info!(count = args.actors, endpoint = %local_endpoint, "started local actors");
-    }
-    let options = ServiceOptions {
-        config,
-        run_id: run_id.clone(),
-        run_dir: run_dir.clone(),
-        resume,
-        init_from,
-        identity,
-        zenoh_overrides,
-    };
+    let children = start_local_actors(&args, &config, &run_id)?;
+    let options =
+        ServiceOptions { config, run_id: run_id.clone(), run_dir, resume, init_from, identity, zenoh_overrides };
     let outcome = runtime.block_on(async {
         tokio::spawn(crawler_cli::stop_on_signal(Arc::clone(&stop)));
         service::run(options, Arc::clone(&stop)).await
@@ -199,6 +107,111 @@ fn main() -> anyhow::Result<()> {
         outcome.last_checkpoint.map(|p| p.display().to_string()).unwrap_or_default()
     );
     Ok(())
+}
+
+/// The config, run id and (for `--resume`, or `--or-resume` of a run with checkpoints) the
+/// checkpoint to continue from. Run ids are checked before any path is built from them.
+fn run_to_start(args: &mut Args) -> anyhow::Result<(TrainConfig, String, Option<checkpoint::Checkpoint>)> {
+    for run in [&args.run, &args.resume].into_iter().flatten() {
+        crawler_proto::keys::check_run_id(run)?;
+    }
+    if args.or_resume
+        && let Some(run) = &args.run
+    {
+        let runs_dir = runs_dir_of(args)?;
+        if checkpoint::list(&runs_dir.join(run).join("checkpoints")).is_ok_and(|l| !l.is_empty()) {
+            info!(run = %run, "the run has checkpoints: resuming it");
+            args.resume = args.run.take();
+        }
+    }
+    Ok(match &args.resume {
+        Some(run) => {
+            let runs_dir = runs_dir_of(args)?;
+            let checkpoint = checkpoint::load(&runs_dir.join(run).join("checkpoints"))
+                .with_context(|| format!("resuming run `{run}`"))?;
+            let config = TrainConfig::from_json(&checkpoint.meta.config, "the checkpoint's config", &args.overrides)?;
+            (config, run.clone(), Some(checkpoint))
+        }
+        None => {
+            let config = TrainConfig::load(&args.config, &args.overrides)?;
+            (config, args.run.clone().unwrap_or_else(default_run_id), None)
+        }
+    })
+}
+
+/// Who may connect, and the zenoh settings for it: mutual TLS with roles by certificate, or
+/// plain TCP, which beyond loopback needs an explicit opt-in.
+fn network_access(
+    args: &Args,
+    config: &TrainConfig,
+) -> anyhow::Result<(access_control::Identity, Vec<(String, String)>)> {
+    if let Some(tls) = args.tls.files()? {
+        check_tls_endpoints(&config.learner.listen, "learner.listen")?;
+        if args.actors > 0 {
+            bail!(
+                "with mutual TLS the learner starts no local actors (they would need certificates of their own): \
+                 pass --actors 0 and start actors with --tls-ca/--tls-cert/--tls-key"
+            );
+        }
+        info!("mutual TLS on; access control: actors and observers by certificate CN, everything else denied");
+        return Ok((access_control::Identity::Certificates, tls.zenoh_settings(TlsSide::Listen)));
+    }
+    if service::listens_beyond_loopback(&config.learner.listen) {
+        if !(args.allow_plain_remote || config.learner.allow_plain_remote) {
+            bail!(
+                "learner.listen {:?} accepts unauthenticated plain TCP from other hosts: anyone who reaches the \
+                 port could join as an actor and feed replay. Listen on 127.0.0.1, use mutual TLS \
+                 (--tls-ca/--tls-cert/--tls-key, see deploy/README.md), or on a trusted network opt in with \
+                 --allow-plain-remote (learner.allow_plain_remote = true)",
+                config.learner.listen
+            );
+        }
+        warn!(
+            listen = ?config.learner.listen,
+            "plain TCP beyond loopback (--allow-plain-remote): anyone who reaches this port can join as an actor \
+             and feed replay; use mutual TLS on untrusted networks"
+        );
+    }
+    Ok((access_control::Identity::None, Vec::new()))
+}
+
+/// The `--init-from` checkpoint, whose network must be this config's.
+fn transfer_source(path: &Path, config: &TrainConfig) -> anyhow::Result<checkpoint::Checkpoint> {
+    let checkpoint = checkpoint::load(path).with_context(|| format!("--init-from {}", path.display()))?;
+    if checkpoint.meta.network != config.network_spec() {
+        bail!(
+            "--init-from {}: its network {:?} differs from this config's {:?}; set network.* to match",
+            path.display(),
+            checkpoint.meta.network,
+            config.network_spec()
+        );
+    }
+    Ok(checkpoint)
+}
+
+/// Starts `--actors N` local actor processes on the learner's first endpoint; if one fails
+/// to start, those already started are stopped.
+fn start_local_actors(args: &Args, config: &TrainConfig, run_id: &str) -> anyhow::Result<Vec<Child>> {
+    let mut children = Vec::new();
+    if args.actors == 0 {
+        return Ok(children);
+    }
+    let local_endpoint = local_endpoint(&config.learner.listen[0])?;
+    let actor_bin = match &args.actor_bin {
+        Some(path) => path.clone(),
+        None => std::env::current_exe()?.with_file_name("actor"),
+    };
+    for id in 0..args.actors {
+        match spawn_actor(&actor_bin, &local_endpoint, id, run_id) {
+            Ok(child) => children.push(child),
+            Err(e) => {
+                reap(children, Duration::ZERO);
+                return Err(e);
+            }
+        }
+    }
+    info!(count = args.actors, endpoint = %local_endpoint, "started local actors");
+    Ok(children)
 }
 
 fn runs_dir_of(args: &Args) -> anyhow::Result<PathBuf> {

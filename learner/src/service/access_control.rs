@@ -41,6 +41,9 @@ pub enum Identity {
 }
 
 /// The `access_control` section of the router's zenoh config for run `run`.
+///
+/// Long on purpose: the policy is one JSON document (rules, subjects, policies), kept whole
+/// so that it reads as zenoh's configuration reference describes it.
 pub fn policy(run: &str, identity: Identity) -> Value {
     let transitions = keys::all_transitions(run);
     let stats = keys::all_stats(run);

@@ -32,7 +32,9 @@ fn an_actor_killed_with_sigkill_leaves_training_going_and_a_restart_gets_the_lat
         u64_at(s, "/updates") > updates + 50 && u64_at(s, "/actors/0/transitions") > transitions
     });
 
-    // The restarted actor asks the weights queryable at once instead of waiting for a publish.
+    // The restarted actor asks the weights queryable at once instead of waiting for a publish:
+    // it acts on weights at least as new as those published before it started. How long that
+    // takes is the join bench's to measure (benches/join.rs), not a test's.
     let published = u64_at(&learner.status().unwrap(), "/weights_version");
     let restarted = Actor::start(port, 1, "kill-actor", runs.path());
     actors[1] = restarted;
@@ -40,7 +42,6 @@ fn an_actor_killed_with_sigkill_leaves_training_going_and_a_restart_gets_the_lat
     let after_ms = log_field(&line, "after_ms").unwrap();
     let version = log_field(&line, "version").unwrap();
     eprintln!("restarted actor: first weights v{version} {after_ms} ms after joining (v{published} was published)");
-    assert!(after_ms < 2000, "{line}");
     assert!(version >= published, "the restart got v{version}, older than the published v{published}");
     learner.wait_for(Duration::from_secs(30), "the restarted actor back in training", |s| {
         s["connected_actors"] == serde_json::json!([0, 1]) && u64_at(s, "/actors/1/transitions") > 0
