@@ -4,7 +4,7 @@
 # rejected). Keys are P-256 ECDSA.
 #
 # The subject common name (CN) is the role the learner's access-control policy checks
-# (learner/src/access_control.rs): every actor certificate has CN=crawler-actor, the observer
+# (learner/src/service/access_control.rs): every actor certificate has CN=crawler-actor, the observer
 # certificate (read-only monitoring) CN=crawler-observer. Each actor's own name
 # (crawler-actor-<i>) is in its subjectAltName and its serial number differs.
 #

@@ -94,7 +94,7 @@ pub struct TlsFiles {
 pub struct TlsArgs {
     /// Mutual TLS: the CA certificate (PEM) that signed every certificate of the deployment.
     /// With --tls-cert and --tls-key; every endpoint must then be tls/, and a learner enforces
-    /// its access-control policy (learner/src/access_control.rs).
+    /// its access-control policy (learner/src/service/access_control.rs).
     #[arg(long, env = "CRAWLER_TLS_CA", value_name = "PEM")]
     pub tls_ca: Option<std::path::PathBuf>,
     /// Mutual TLS: this process's certificate (PEM, from deploy/make-tls.sh).

@@ -21,7 +21,7 @@
 //! listener on any other address unless told `--allow-plain-remote`).
 //!
 //! zenoh drops denied messages silently (no error reaches the sender), which is why the
-//! security tests check what actually arrives (`tests/tests/security.rs`).
+//! security tests check what actually arrives (`tests/tests/it/security.rs`).
 
 use crawler_proto::keys;
 use serde_json::{Value, json};

@@ -11,7 +11,7 @@
 //!   transitions key (inside them). At the end it prints what it sent as JSON.
 //! - `attack KIND --run RUN --id ID --seconds S`: one of the attacks of an outsider (or of an
 //!   insider with an actor certificate) on a running learner, for the attack suite in
-//!   `tests/tests/security.rs`; see [`Attack`]. Prints what it did as JSON on stdout.
+//!   `tests/tests/it/security.rs`; see [`Attack`]. Prints what it did as JSON on stdout.
 
 use std::io::Write;
 use std::time::{Duration, Instant};
