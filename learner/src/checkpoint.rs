@@ -54,7 +54,7 @@ pub fn load_replay(checkpoint: &Checkpoint) -> Result<Option<Replay>, Checkpoint
     let Some((path, bytes)) = crawler_run::checkpoint::replay_bytes(checkpoint)? else { return Ok(None) };
     let reader = BufReader::new(bytes.as_slice());
     let replay: Replay = bincode::serde::decode_from_std_read(&mut { reader }, bincode::config::standard())
-        .map_err(|e| corrupt(&path, e))?;
+        .map_err(|e| CheckpointError::ReplayLayout { path: path.clone(), reason: e.to_string() })?;
     Ok(Some(replay))
 }
 

@@ -50,6 +50,8 @@ pub enum CheckpointError {
     Io { action: &'static str, path: PathBuf, source: std::io::Error },
     #[error("checkpoint file {path} is corrupt: {reason}")]
     Corrupt { path: PathBuf, reason: String },
+    #[error("checkpoint file {path} passed its checksum but is not this version's replay layout: {reason}")]
+    ReplayLayout { path: PathBuf, reason: String },
     #[error("checkpoint {path} does not fit this run: its {what} is {found}, this run needs {expected}")]
     Mismatch { path: PathBuf, what: &'static str, found: String, expected: String },
     #[error("no checkpoint found in {0}; train first, or point at a `step-*` directory")]

@@ -101,7 +101,20 @@ impl<'a> Trainer<'a> {
         if let Some(checkpoint) = &start.resume {
             dqn.restore(checkpoint)?;
             progress = checkpoint.meta.progress.clone();
-            replay = checkpoint::load_replay(checkpoint)?;
+            // The file's size and CRC are checked first, so a snapshot that passes them but
+            // does not decode was written by an older replay layout: the run resumes with an
+            // empty replay (as when the replay config changed) rather than not at all.
+            replay = match checkpoint::load_replay(checkpoint) {
+                Ok(replay) => replay,
+                Err(CheckpointError::ReplayLayout { path, reason }) => {
+                    warn!(
+                        "the replay snapshot {} does not decode ({reason}); resuming with an empty replay",
+                        path.display()
+                    );
+                    None
+                }
+                Err(e) => return Err(e.into()),
+            };
             info!(
                 updates = progress.updates,
                 weights_version = progress.weights_version,

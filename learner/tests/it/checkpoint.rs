@@ -232,3 +232,27 @@ fn a_meta_json_declaring_an_enormous_network_is_refused_before_allocating() {
     let error = checkpoint::load(&path).unwrap_err().to_string();
     assert!(error.contains("meta.json") && error.contains("hidden layers"), "{error}");
 }
+
+/// A replay snapshot whose file is intact (size and CRC as recorded) but that is not this
+/// version's replay layout is told apart from a damaged file, so a resumed run can go on
+/// with an empty replay instead of refusing to start.
+#[test]
+fn an_intact_snapshot_of_another_replay_layout_is_named_as_such() {
+    let dir = tempfile::tempdir().unwrap();
+    let replay = Replay::new(ReplayConfig { capacity: 8, n_step: 1, prioritized: None }, 40).unwrap();
+    let path =
+        checkpoint::save(dir.path(), &trained(7), "run", &progress(1), &serde_json::Value::Null, Some(&replay), 1)
+            .unwrap();
+    // Rewrite replay.bin with bytes of no replay layout, and record their size and CRC.
+    let foreign = vec![0xFFu8; 64];
+    fs::write(path.join("replay.bin"), &foreign).unwrap();
+    let meta_path = path.join("meta.json");
+    let mut meta: serde_json::Value = serde_json::from_slice(&fs::read(&meta_path).unwrap()).unwrap();
+    meta["files"]["replay.bin"] = serde_json::json!({ "bytes": foreign.len(), "crc32": crc32fast::hash(&foreign) });
+    fs::write(&meta_path, serde_json::to_vec(&meta).unwrap()).unwrap();
+    let loaded = checkpoint::load(&path).unwrap();
+    match checkpoint::load_replay(&loaded) {
+        Err(CheckpointError::ReplayLayout { path, .. }) => assert!(path.ends_with("replay.bin"), "{}", path.display()),
+        other => panic!("expected a replay-layout error, got {other:?}"),
+    }
+}
