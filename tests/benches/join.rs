@@ -40,7 +40,7 @@ fn main() {
     let port = free_port();
     let zenoh = std::env::var("JOIN_BENCH_ZENOH").ok();
     let extra: Vec<&str> = zenoh.iter().flat_map(|z| ["--zenoh", z.as_str()]).collect();
-    let mut learner = Learner::start_on(port, "configs/smoke.toml", dir.path(), "join", 0, &extra);
+    let mut learner = Learner::builder(dir.path(), "join").port(port).config("configs/smoke.toml").args(&extra).start();
     learner.wait_for(Duration::from_secs(60), "the learner's first status", |s| u64_at(s, "/weights_version") >= 1);
 
     let mut quiet = join_times(port, "join", dir.path());

@@ -145,7 +145,7 @@ fn main() {
     if let Some(path) = &init_from {
         extra.extend(["--init-from", path.as_str()]);
     }
-    let mut learner = Learner::start_with(&config, &runs_dir, &run, actors, &extra);
+    let mut learner = Learner::builder(&runs_dir, &run).config(&config).actors(actors).args(&extra).start();
     let checkpoints = runs_dir.join(&run).join("checkpoints");
     println!(
         "config {config}, seed {seed}, {minutes} min, {actors} actors, settings {settings:?}, init from {init_from:?}"

@@ -21,7 +21,7 @@ fn main() {
         .unwrap_or_else(|e| panic!("{CONFIG}: {e}"))
         .replay
         .capacity;
-    let mut learner = Learner::start_with(CONFIG, runs.path(), "bench", 2, &extra);
+    let mut learner = Learner::builder(runs.path(), "bench").config(CONFIG).actors(2).args(&extra).start();
     learner.wait_for(Duration::from_secs(60), "training to start", |s| u64_at(s, "/updates") > 0);
     let first = learner.status().unwrap();
     let start = Instant::now();

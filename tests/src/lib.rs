@@ -31,7 +31,6 @@ pub fn repo_root() -> PathBuf {
     Path::new(env!("CARGO_MANIFEST_DIR")).parent().unwrap().to_path_buf()
 }
 
-/// A loopback TCP port that was free a moment ago.
 /// TLS material for a deployment, made by `deploy/make-tls.sh DIR LEARNER_HOST ACTORS`.
 pub fn make_tls(dir: &Path, learner_host: &str, actors: u32) -> PathBuf {
     let status = Command::new("bash")
@@ -44,6 +43,7 @@ pub fn make_tls(dir: &Path, learner_host: &str, actors: u32) -> PathBuf {
     dir.to_path_buf()
 }
 
+/// A loopback TCP port that was free a moment ago.
 pub fn free_port() -> u16 {
     TcpListener::bind("127.0.0.1:0").unwrap().local_addr().unwrap().port()
 }
@@ -57,78 +57,93 @@ pub struct Learner {
     pub port: u16,
 }
 
-impl Learner {
-    /// `learner --config configs/smoke.toml --actors <actors>` on a fresh port and runs dir.
-    pub fn start(runs_dir: &Path, run: &str, actors: usize, extra: &[&str]) -> Self {
-        Self::start_with("configs/smoke.toml", runs_dir, run, actors, extra)
+/// How to start a test [`Learner`]: `Learner::builder(runs_dir, run)` is
+/// `learner --config configs/smoke.toml --run <run> --actors 0` on a free loopback port, with
+/// `runs_dir` as its runs directory; each method changes one thing.
+#[derive(Debug, Clone)]
+pub struct LearnerBuilder<'a> {
+    runs_dir: &'a Path,
+    run: &'a str,
+    config: &'a str,
+    resume: bool,
+    port: Option<u16>,
+    actors: usize,
+    args: Vec<&'a str>,
+    env: Vec<(&'a str, &'a str)>,
+}
+
+impl<'a> LearnerBuilder<'a> {
+    /// Another preset (a path relative to the repository root).
+    pub fn config(mut self, config: &'a str) -> Self {
+        self.config = config;
+        self
     }
 
-    /// Like [`Learner::start`] with another preset.
-    pub fn start_with(config: &str, runs_dir: &Path, run: &str, actors: usize, extra: &[&str]) -> Self {
-        Self::launch(&["--config", config, "--run", run], runs_dir, run, actors, extra)
+    /// `--resume <run>` with the run's own stored config instead of a preset.
+    pub fn resume(mut self) -> Self {
+        self.resume = true;
+        self
     }
 
-    /// `learner --resume <run>` with its own stored config (plus a fresh port and `extra`).
-    pub fn resume(runs_dir: &Path, run: &str, actors: usize, extra: &[&str]) -> Self {
-        Self::launch(&["--resume", run], runs_dir, run, actors, extra)
+    /// Listen on `port` (actors connected to an earlier learner there reconnect).
+    pub fn port(mut self, port: u16) -> Self {
+        self.port = Some(port);
+        self
     }
 
-    /// `learner --resume <run>` on a given port (actors connected to it reconnect).
-    pub fn resume_on(port: u16, runs_dir: &Path, run: &str, actors: usize, extra: &[&str]) -> Self {
-        Self::launch_on(port, &["--resume", run], runs_dir, run, actors, extra)
+    /// Local actor processes (`--actors N`).
+    pub fn actors(mut self, actors: usize) -> Self {
+        self.actors = actors;
+        self
     }
 
-    /// Like [`Learner::start_with`] on a given port.
-    pub fn start_on(port: u16, config: &str, runs_dir: &Path, run: &str, actors: usize, extra: &[&str]) -> Self {
-        Self::launch_on(port, &["--config", config, "--run", run], runs_dir, run, actors, extra)
+    /// More learner arguments (`--set key=value`, …).
+    pub fn args(mut self, args: &[&'a str]) -> Self {
+        self.args.extend_from_slice(args);
+        self
     }
 
-    /// Like [`Learner::start_on`] with extra environment variables (test hooks).
-    pub fn start_on_with_env(
-        port: u16,
-        config: &str,
-        runs_dir: &Path,
-        run: &str,
-        actors: usize,
-        extra: &[&str],
-        env: &[(&str, &str)],
-    ) -> Self {
-        Self::launch_env(port, &["--config", config, "--run", run], runs_dir, run, actors, extra, env)
+    /// Environment variables of the learner process (test hooks such as `FAILPOINTS`).
+    pub fn env(mut self, env: &[(&'a str, &'a str)]) -> Self {
+        self.env.extend_from_slice(env);
+        self
     }
 
-    fn launch(mode: &[&str], runs_dir: &Path, run: &str, actors: usize, extra: &[&str]) -> Self {
-        Self::launch_on(free_port(), mode, runs_dir, run, actors, extra)
-    }
-
-    fn launch_on(port: u16, mode: &[&str], runs_dir: &Path, run: &str, actors: usize, extra: &[&str]) -> Self {
-        Self::launch_env(port, mode, runs_dir, run, actors, extra, &[])
-    }
-
-    #[allow(clippy::too_many_arguments)]
-    fn launch_env(
-        port: u16,
-        mode: &[&str],
-        runs_dir: &Path,
-        run: &str,
-        actors: usize,
-        extra: &[&str],
-        env: &[(&str, &str)],
-    ) -> Self {
+    pub fn start(self) -> Learner {
+        let port = self.port.unwrap_or_else(free_port);
         let listen = format!("learner.listen=[\"tcp/127.0.0.1:{port}\"]");
-        let runs = format!("learner.runs_dir=\"{}\"", runs_dir.display());
-        let mut command = Command::new(binary("learner"));
-        command
+        let runs = format!("learner.runs_dir=\"{}\"", self.runs_dir.display());
+        let mode: Vec<&str> =
+            if self.resume { vec!["--resume", self.run] } else { vec!["--config", self.config, "--run", self.run] };
+        let child = Command::new(binary("learner"))
             .current_dir(repo_root())
             .args(mode)
-            .args(["--actors", &actors.to_string()])
+            .args(["--actors", &self.actors.to_string()])
             .args(["--set", &listen, "--set", &runs])
             .args(["--actor-bin", binary("actor").to_str().unwrap()])
-            .args(extra)
-            .envs(env.iter().copied())
+            .args(&self.args)
+            .envs(self.env.iter().copied())
             .stdout(Stdio::null())
-            .stderr(Stdio::inherit());
-        let child = command.spawn().unwrap();
-        Self { child, runs_dir: runs_dir.to_path_buf(), run: run.to_string(), port }
+            .stderr(Stdio::inherit())
+            .spawn()
+            .unwrap();
+        Learner { child, runs_dir: self.runs_dir.to_path_buf(), run: self.run.to_string(), port }
+    }
+}
+
+impl Learner {
+    /// A learner to start; see [`LearnerBuilder`].
+    pub fn builder<'a>(runs_dir: &'a Path, run: &'a str) -> LearnerBuilder<'a> {
+        LearnerBuilder {
+            runs_dir,
+            run,
+            config: "configs/smoke.toml",
+            resume: false,
+            port: None,
+            actors: 0,
+            args: Vec::new(),
+            env: Vec::new(),
+        }
     }
 
     pub fn status_path(&self) -> PathBuf {

@@ -10,7 +10,7 @@ use crawler_tests::{Learner, binary, repo_root, u64_at};
 #[test]
 fn a_learner_trains_on_two_actors_and_checkpoints() {
     let runs = tempfile::tempdir().unwrap();
-    let mut learner = Learner::start(runs.path(), "itest", 2, &[]);
+    let mut learner = Learner::builder(runs.path(), "itest").actors(2).start();
 
     let status = learner.wait_for(Duration::from_secs(180), "both actors' transitions in replay", |s| {
         let both = |pointer: &str, min: u64| (0..2).all(|id| u64_at(s, &format!("/actors/{id}/{pointer}")) >= min);
@@ -90,7 +90,8 @@ fn bad_configs_are_refused_with_the_key_or_path_named() {
 #[test]
 fn a_resumed_run_continues_its_counters_weights_version_and_replay() {
     let runs = tempfile::tempdir().unwrap();
-    let mut first = Learner::start(runs.path(), "resumed", 2, &["--set", "learner.max_updates=150"]);
+    let mut first =
+        Learner::builder(runs.path(), "resumed").actors(2).args(&["--set", "learner.max_updates=150"]).start();
     let exit = first.wait_for_exit(Duration::from_secs(180));
     assert!(exit.success(), "first session: {exit}");
     let checkpoints = runs.path().join("resumed/checkpoints");
@@ -99,7 +100,8 @@ fn a_resumed_run_continues_its_counters_weights_version_and_replay() {
     assert_eq!(before.meta.progress.updates, 150);
 
     // `--resume` takes the run's own config; the overrides here only move the goal post.
-    let mut second = Learner::resume(runs.path(), "resumed", 2, &["--set", "learner.max_updates=300"]);
+    let mut second =
+        Learner::builder(runs.path(), "resumed").resume().actors(2).args(&["--set", "learner.max_updates=300"]).start();
     let exit = second.wait_for_exit(Duration::from_secs(180));
     assert!(exit.success(), "resumed session: {exit}");
     let after = crawler_learner::checkpoint::load(&checkpoints).unwrap();

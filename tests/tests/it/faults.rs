@@ -15,7 +15,7 @@ const SMOKE: &str = "configs/smoke.toml";
 fn an_actor_killed_with_sigkill_leaves_training_going_and_a_restart_gets_the_latest_weights() {
     let runs = tempfile::tempdir().unwrap();
     let port = free_port();
-    let mut learner = Learner::start_on(port, SMOKE, runs.path(), "kill-actor", 0, &[]);
+    let mut learner = Learner::builder(runs.path(), "kill-actor").port(port).config(SMOKE).start();
     let mut actors: Vec<Actor> = (0..2).map(|id| Actor::start(port, id, "kill-actor", runs.path())).collect();
     learner.wait_for(Duration::from_secs(120), "both actors training", |s| {
         (0..2).all(|id| u64_at(s, &format!("/actors/{id}/transitions")) > 0) && u64_at(s, "/updates") > 50
@@ -58,7 +58,8 @@ fn a_learner_killed_with_sigkill_resumes_the_run_and_running_actors_reconnect() 
     // Each save pauses before its rename: killed there, the learner has published 20 versions
     // past the checkpoint it will resume from, so the actors hold newer numbers than it.
     let pause = [("FAILPOINTS", "checkpoint-before-rename=sleep(400)")];
-    let mut learner = Learner::start_on_with_env(port, SMOKE, runs.path(), "kill-learner", 0, &settings, &pause);
+    let mut learner =
+        Learner::builder(runs.path(), "kill-learner").port(port).config(SMOKE).args(&settings).env(&pause).start();
     let mut actors: Vec<Actor> = (0..2).map(|id| Actor::start(port, id, "kill-learner", runs.path())).collect();
     let checkpoints = runs.path().join("kill-learner/checkpoints");
     learner.wait_for(Duration::from_secs(120), "a few checkpoints", |s| u64_at(s, "/updates") >= 350);
@@ -90,7 +91,7 @@ fn a_learner_killed_with_sigkill_resumes_the_run_and_running_actors_reconnect() 
     // learner's publishes are newer than anything the killed one sent, whatever number they
     // carry. With weights_every 1 000 its numbers stay below the actors' for a while.
     let overrides = ["--set", "learner.weights_every=1000", "--set", "learner.checkpoint_every=1000"];
-    let mut resumed = Learner::resume_on(port, runs.path(), "kill-learner", 0, &overrides);
+    let mut resumed = Learner::builder(runs.path(), "kill-learner").port(port).resume().args(&overrides).start();
     let status = resumed.wait_for(Duration::from_secs(60), "both actors reconnected and sending", |s| {
         s["connected_actors"] == serde_json::json!([0, 1])
             && (0..2).all(|id| u64_at(s, &format!("/actors/{id}/transitions")) > 0)
@@ -160,7 +161,7 @@ fn last_status_steps(log: &str) -> u64 {
 fn bad_input_is_refused_counted_and_kept_out_of_replay_while_training_goes_on() {
     let runs = tempfile::tempdir().unwrap();
     let port = free_port();
-    let mut learner = Learner::start_on(port, SMOKE, runs.path(), "garbage", 2, &[]);
+    let mut learner = Learner::builder(runs.path(), "garbage").port(port).config(SMOKE).actors(2).start();
     learner.wait_for(Duration::from_secs(120), "training", |s| u64_at(s, "/updates") > 50);
 
     let output = Command::new(binary("garbage"))
@@ -205,7 +206,7 @@ fn a_kill_during_a_checkpoint_write_keeps_the_previous_checkpoint_and_the_run_re
     let checkpoints = runs.path().join("torn/checkpoints");
     // Every save pauses 1.5 s between writing its files and renaming them into place.
     let pause = [("FAILPOINTS", "checkpoint-before-rename=sleep(1500)")];
-    let mut learner = Learner::start_on_with_env(port, SMOKE, runs.path(), "torn", 2, &[], &pause);
+    let mut learner = Learner::builder(runs.path(), "torn").port(port).config(SMOKE).actors(2).env(&pause).start();
     let start = Instant::now();
     let partial = loop {
         let entries: Vec<String> = std::fs::read_dir(&checkpoints)
@@ -235,7 +236,7 @@ fn a_kill_during_a_checkpoint_write_keeps_the_previous_checkpoint_and_the_run_re
     assert!(saved.online.iter().all(|v| v.is_finite()));
 
     // The run resumes from it, and the partial directory is cleaned away.
-    let mut resumed = Learner::resume_on(port, runs.path(), "torn", 2, &[]);
+    let mut resumed = Learner::builder(runs.path(), "torn").port(port).resume().actors(2).start();
     resumed.wait_for(Duration::from_secs(120), "training after the resume", |s| {
         u64_at(s, "/updates") > saved.meta.progress.updates
     });

@@ -37,7 +37,7 @@ fn png_size(path: &Path) -> (u32, u32) {
 #[test]
 fn a_run_writes_metrics_that_plot_and_render_turn_into_pictures() {
     let runs = tempfile::tempdir().unwrap();
-    let mut learner = Learner::start(runs.path(), "pictures", 2, &[]);
+    let mut learner = Learner::builder(runs.path(), "pictures").actors(2).start();
     learner.wait_for(Duration::from_secs(180), "episodes of both actors and some updates", |s| {
         (0..2).all(|id| crawler_tests::u64_at(s, &format!("/actors/{id}/episodes")) >= 2)
             && crawler_tests::u64_at(s, "/updates") > 0
@@ -146,7 +146,8 @@ fn eval_runs_a_checkpoint_in_the_studys_layout() {
 #[test]
 fn init_from_copies_another_runs_networks_and_refuses_a_different_one() {
     let runs = tempfile::tempdir().unwrap();
-    let mut source = Learner::start(runs.path(), "forward", 2, &["--set", "learner.max_updates=200"]);
+    let mut source =
+        Learner::builder(runs.path(), "forward").actors(2).args(&["--set", "learner.max_updates=200"]).start();
     assert!(source.wait_for_exit(Duration::from_secs(180)).success());
     let source_checkpoint = checkpoint::load(&runs.path().join("forward/checkpoints")).unwrap();
 
@@ -161,7 +162,7 @@ fn init_from_copies_another_runs_networks_and_refuses_a_different_one() {
         "--set",
         "env.direction=\"backward\"",
     ];
-    let mut transfer = Learner::start(runs.path(), "backward", 0, &args);
+    let mut transfer = Learner::builder(runs.path(), "backward").args(&args).start();
     assert!(transfer.wait_for_exit(Duration::from_secs(60)).success());
     let transferred = checkpoint::load(&runs.path().join("backward/checkpoints")).unwrap();
     assert_eq!(transferred.online, source_checkpoint.online);

@@ -33,7 +33,7 @@ fn start_learner(port: u16, runs: &Path, run: &str, tls: &Path) -> Learner {
     let mut extra = vec!["--set".to_string(), listen];
     extra.extend(tls_flags(tls, tls, "learner"));
     let extra: Vec<&str> = extra.iter().map(String::as_str).collect();
-    Learner::start_on(port, SMOKE, runs, run, 0, &extra)
+    Learner::builder(runs, run).port(port).config(SMOKE).args(&extra).start()
 }
 
 fn start_actor(port: u16, id: u32, run: &str, tls: Vec<String>, log_dir: &Path) -> Actor {
@@ -410,7 +410,7 @@ fn attacks_over_plain_tcp_leave_training_intact() {
     let runs = dir.path().join("runs");
     let port = free_port();
     let run = "attacked-tcp";
-    let mut learner = Learner::start_on(port, SMOKE, &runs, run, 2, &[]);
+    let mut learner = Learner::builder(&runs, run).port(port).config(SMOKE).actors(2).start();
     let link = Link { endpoint: format!("tcp/127.0.0.1:{port}"), actor_tls: Vec::new() };
     attack_suite(&mut learner, &link, run, dir.path());
 }
