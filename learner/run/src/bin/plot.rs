@@ -117,7 +117,9 @@ fn per_actor(runs: &[Run], x: impl Fn(&Scalar) -> f64 + Copy) -> Vec<Curve> {
     let mut curves = Vec::new();
     for run in runs {
         for id in run.actor_ids() {
-            let epsilon = run.last(&format!("actor/{id}/epsilon")).map_or(String::new(), |e| format!(", ε = {e:.2}"));
+            let epsilon = run
+                .last(&format!("actor/{id}/epsilon"))
+                .map_or(String::new(), |e| format!(", ε = {}", epsilon_label(e)));
             let prefix = if runs.len() > 1 { format!("{} · ", run.label) } else { String::new() };
             curves.push(Curve {
                 label: format!("{prefix}actor {id}{epsilon}"),
@@ -126,6 +128,12 @@ fn per_actor(runs: &[Run], x: impl Fn(&Scalar) -> f64 + Copy) -> Vec<Curve> {
         }
     }
     curves
+}
+
+/// ε as people read it: two decimals, or one significant digit below 0.01 (the ε ladder's
+/// last actor explores with 0.0007, which two decimals would show as 0).
+fn epsilon_label(epsilon: f64) -> String {
+    if epsilon == 0.0 || epsilon >= 0.01 { format!("{epsilon:.2}") } else { format!("{epsilon:.0e}") }
 }
 
 fn write(panels: &[Panel], height: u32, path: &Path) -> anyhow::Result<()> {
