@@ -140,7 +140,7 @@ pub async fn run(mut options: ActorOptions, stop: Arc<AtomicBool>) -> Result<(),
     info!(run = %run_id, id, envs = settings.envs_per_actor, evaluator = options.evaluator, "joined run");
 
     let (weights, policy_rx) = WeightsFeed::new(&run_id, settings.env.num_actions());
-    let _subscriptions = subscribe(&session, &run_id, &weights, &stop, &options).await?;
+    let _subscriptions = subscribe(&session, &run_id, &weights, &stop, id, options.evaluator).await?;
     weights.wait_for_first(&session, &policy_rx, &stop).await;
     let publishers = Publishers::declare(&session, &run_id, id).await?;
 
@@ -255,7 +255,8 @@ async fn subscribe(
     run_id: &str,
     weights: &WeightsFeed,
     stop: &Arc<AtomicBool>,
-    options: &ActorOptions,
+    id: u32,
+    evaluator: bool,
 ) -> Result<Subscriptions, NodeError> {
     let feed = weights.clone();
     let weights = session
@@ -276,8 +277,7 @@ async fn subscribe(
         })
         .await
         .map_err(zenoh_error("subscribing to control"))?;
-    let id = options.id.unwrap_or_default();
-    let token_key = if options.evaluator { keys::alive_evaluator(run_id, id) } else { keys::alive_actor(run_id, id) };
+    let token_key = if evaluator { keys::alive_evaluator(run_id, id) } else { keys::alive_actor(run_id, id) };
     let token = session.liveliness().declare_token(token_key).await.map_err(zenoh_error("declaring liveliness"))?;
     Ok(Subscriptions { _weights: weights, _control: control, _token: token })
 }

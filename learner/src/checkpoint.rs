@@ -30,12 +30,12 @@ pub fn save(
     replay: Option<&Replay>,
     keep: usize,
 ) -> Result<PathBuf, CheckpointError> {
-    let write_replay = |replay: &Replay, mut writer: &mut dyn Write| {
-        bincode::serde::encode_into_std_write(replay, &mut writer, bincode::config::standard())
+    let write_replay = |mut writer: &mut dyn Write| match replay {
+        Some(replay) => bincode::serde::encode_into_std_write(replay, &mut writer, bincode::config::standard())
             .map(drop)
-            .map_err(std::io::Error::other)
+            .map_err(std::io::Error::other),
+        None => Ok(()),
     };
-    let replay_writer = replay.map(|replay| move |w: &mut dyn Write| write_replay(replay, w));
     let (online, target) = (dqn.online.flat_values(), dqn.target.flat_values());
     let snapshot = Snapshot {
         network: &dqn.network,
@@ -44,7 +44,7 @@ pub fn save(
         exp_avg: &dqn.optimizer.exp_avg,
         exp_avg_sq: &dqn.optimizer.exp_avg_sq,
         adam_step: dqn.optimizer.step,
-        replay: replay_writer.as_ref().map(|w| w as FileWriter<'_>),
+        replay: replay.is_some().then_some(&write_replay as FileWriter<'_>),
     };
     crawler_run::checkpoint::save(dir, &snapshot, run_id, progress, config, keep)
 }

@@ -350,21 +350,18 @@ pub fn load(path: &Path) -> Result<Checkpoint, CheckpointError> {
     let meta_path = path.join(META);
     let meta_bytes = fs::read(&meta_path).map_err(io("read", &meta_path))?;
     let meta: CheckpointMeta = serde_json::from_slice(&meta_bytes).map_err(|e| corrupt(&meta_path, e))?;
-    if meta.format != CHECKPOINT_FORMAT {
-        return Err(CheckpointError::Mismatch {
-            path,
-            what: "format version",
-            found: meta.format.to_string(),
-            expected: CHECKPOINT_FORMAT.to_string(),
-        });
-    }
-    if meta.obs_layout_version != OBS_LAYOUT_VERSION {
-        return Err(CheckpointError::Mismatch {
-            path,
-            what: "observation layout version",
-            found: meta.obs_layout_version.to_string(),
-            expected: OBS_LAYOUT_VERSION.to_string(),
-        });
+    for (what, found, expected) in [
+        ("format version", meta.format, CHECKPOINT_FORMAT),
+        ("observation layout version", meta.obs_layout_version, OBS_LAYOUT_VERSION),
+    ] {
+        if found != expected {
+            return Err(CheckpointError::Mismatch {
+                path,
+                what,
+                found: found.to_string(),
+                expected: expected.to_string(),
+            });
+        }
     }
     meta.network.validate().map_err(|e| corrupt(&meta_path, e))?;
     let read = |file: &str| -> Result<Vec<u8>, CheckpointError> {
