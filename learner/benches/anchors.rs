@@ -25,7 +25,9 @@ const ROWS: &[&str] = &[
     "inference-b16",
     "update-study-b32",
     "update-study-b256",
+    "update-default-b32",
     "update-default-b64",
+    "update-default-b256",
 ];
 
 /// The physics row: 10 episodes of 20 s of the square-wave gait that crawls in both engines,
@@ -127,6 +129,11 @@ fn update(row: &str, spec: NetworkSpec, config: DqnConfig) -> serde_json::Value 
     json!({ "row": row, "project": per_second, "unit": "updates/s", "what": what })
 }
 
+/// configs/default.toml's `[dqn]` section at `batch_size`.
+fn default_dqn(batch_size: usize) -> DqnConfig {
+    DqnConfig { batch_size, loss: LossKind::Huber, max_grad_norm: Some(10.0), gamma: 0.98, ..DqnConfig::default() }
+}
+
 fn measure(row: &str) -> Option<serde_json::Value> {
     let study = || NetworkSpec::study();
     let default_net = NetworkSpec { obs_dim: OBS_DIM, hidden: vec![256, 256], num_actions: 25, layer_norm: true };
@@ -137,17 +144,10 @@ fn measure(row: &str) -> Option<serde_json::Value> {
         "inference-b16" => inference(16),
         "update-study-b32" => update(row, study(), DqnConfig { batch_size: 32, ..DqnConfig::default() }),
         "update-study-b256" => update(row, study(), DqnConfig { batch_size: 256, ..DqnConfig::default() }),
-        "update-default-b64" => update(
-            row,
-            default_net,
-            DqnConfig {
-                batch_size: 64,
-                loss: LossKind::Huber,
-                max_grad_norm: Some(10.0),
-                gamma: 0.98,
-                ..DqnConfig::default()
-            },
-        ),
+        // The default preset's network and loss; 64 is its batch size.
+        "update-default-b32" => update(row, default_net, default_dqn(32)),
+        "update-default-b64" => update(row, default_net, default_dqn(64)),
+        "update-default-b256" => update(row, default_net, default_dqn(256)),
         _ => return None,
     })
 }

@@ -7,6 +7,7 @@ use std::time::{Duration, Instant};
 use crawler_actor::policy::{MlpPolicy, NetworkSpec};
 use crawler_learner::algo::adam::{AdamConfig, FlatAdam};
 use crawler_learner::algo::dqn::{Batch, Dqn, DqnConfig};
+use crawler_learner::algo::network::Gradient;
 use crawler_learner::checkpoint::encode_weights;
 use crawler_learner::replay::{Replay, ReplayConfig, SampledBatch, StreamId, Transition};
 use rand::{Rng, SeedableRng};
@@ -63,9 +64,9 @@ fn per_parameter_adam_step_us(spec: &NetworkSpec, budget: Duration) -> f64 {
 fn flat_adam_step_us(budget: Duration) -> f64 {
     let dqn = Dqn::new(NetworkSpec::study(), DqnConfig::default());
     let mut params = dqn.online.flat().copy();
-    let grad = Tensor::randn([params.numel() as i64], (Kind::Float, tch::Device::Cpu));
+    let grad = Gradient::from_parts(vec![Tensor::randn([params.numel() as i64], (Kind::Float, tch::Device::Cpu))]);
     let mut adam = FlatAdam::new(params.numel(), AdamConfig::default());
-    1e6 / rate(budget, || adam.step(&mut params, &grad))
+    1e6 / rate(budget, || adam.step(&mut params, &grad, 1.0))
 }
 
 fn main() {

@@ -51,7 +51,9 @@ DEFAULT_NET = dict(hidden=[256, 256], layer_norm=True)
 UPDATES = {
     "update-study-b32": dict(net=STUDY_NET, batch=32, loss="mse", clip=None, gamma=0.99),
     "update-study-b256": dict(net=STUDY_NET, batch=256, loss="mse", clip=None, gamma=0.99),
+    "update-default-b32": dict(net=DEFAULT_NET, batch=32, loss="huber", clip=10.0, gamma=0.98),
     "update-default-b64": dict(net=DEFAULT_NET, batch=64, loss="huber", clip=10.0, gamma=0.98),
+    "update-default-b256": dict(net=DEFAULT_NET, batch=256, loss="huber", clip=10.0, gamma=0.98),
 }
 
 

@@ -124,49 +124,84 @@ impl Dense {
     fn forward(&self, input: &[f32], batch: usize, output: &mut Vec<f32>) {
         output.clear();
         output.resize(batch * self.outputs, 0.0);
-        // y = b + Σᵢ xᵢ·Wᵀ[i]: each step adds a contiguous weight row to the outputs (an axpy,
-        // which vectorises without reordering any sum), and four samples share each pass over
-        // the weights, which are most of the memory traffic.
-        let mut x_blocks = input.chunks_exact(4 * self.inputs);
-        let mut y_blocks = output.chunks_exact_mut(4 * self.outputs);
-        for (x, y) in (&mut x_blocks).zip(&mut y_blocks) {
-            let (y01, y23) = y.split_at_mut(2 * self.outputs);
-            let (y0, y1) = y01.split_at_mut(self.outputs);
-            let (y2, y3) = y23.split_at_mut(self.outputs);
-            for yk in [&mut *y0, &mut *y1, &mut *y2, &mut *y3] {
-                yk.copy_from_slice(&self.bias);
-            }
-            for (i, w) in self.weight_t.chunks_exact(self.outputs).enumerate() {
-                let a = [x[i], x[self.inputs + i], x[2 * self.inputs + i], x[3 * self.inputs + i]];
-                let lanes = y0.iter_mut().zip(y1.iter_mut()).zip(y2.iter_mut().zip(y3.iter_mut())).zip(w);
-                for (((o0, o1), (o2, o3)), &wo) in lanes {
-                    *o0 += a[0] * wo;
-                    *o1 += a[1] * wo;
-                    *o2 += a[2] * wo;
-                    *o3 += a[3] * wo;
-                }
-            }
-        }
-        let rest = x_blocks.remainder().chunks_exact(self.inputs);
-        for (x, y) in rest.zip(y_blocks.into_remainder().chunks_exact_mut(self.outputs)) {
-            y.copy_from_slice(&self.bias);
-            for (&a, w) in x.iter().zip(self.weight_t.chunks_exact(self.outputs)) {
-                // After a ReLU about half the inputs are zero: skip their rows.
-                if a != 0.0 {
-                    for (o, &wo) in y.iter_mut().zip(w) {
-                        *o += a * wo;
-                    }
-                }
-            }
-        }
         for y in output.chunks_exact_mut(self.outputs) {
-            if let Some((scale, shift)) = &self.norm {
-                layer_norm(y, scale, shift);
+            y.copy_from_slice(&self.bias);
+        }
+        if batch == 1 {
+            // One row: nothing to block for, the weights are streamed once either way, and
+            // after a ReLU about half the inputs are zero, whose rows this skips.
+            add_row_combination(input, &self.weight_t, output);
+        } else {
+            self.add_product(input, batch, output);
+        }
+        let norm = self.norm.as_ref().map(|(scale, shift)| (scale.as_slice(), shift.as_slice()));
+        normalize_and_activate(output, self.outputs, norm, self.relu);
+    }
+
+    /// `Y += X·Wᵀ` for `batch` observations: the `gemm` crate's register-blocked kernels,
+    /// dispatched at run time to the CPU's SIMD (SSE, AVX2+FMA, AVX-512).
+    fn add_product(&self, x: &[f32], batch: usize, y: &mut [f32]) {
+        let (inputs, outputs) = (self.inputs, self.outputs);
+        assert!(
+            x.len() == batch * inputs && y.len() == batch * outputs && self.weight_t.len() == inputs * outputs,
+            "matrix shapes are checked when the layer is built"
+        );
+        // SAFETY: the three pointers come from slices whose lengths were just checked to be
+        // exactly the row-major matrices described by the sizes and strides passed (X is
+        // batch × inputs, Wᵀ inputs × outputs, Y batch × outputs, unit column stride); `y`
+        // is borrowed mutably, so nothing else aliases it while gemm writes, and gemm runs
+        // on this thread only (Parallelism::None) before returning.
+        #[allow(unsafe_code)]
+        unsafe {
+            gemm::gemm(
+                batch,
+                outputs,
+                inputs,
+                y.as_mut_ptr(),
+                1,
+                outputs as isize,
+                true,
+                x.as_ptr(),
+                1,
+                inputs as isize,
+                self.weight_t.as_ptr(),
+                1,
+                outputs as isize,
+                1.0f32,
+                1.0f32,
+                false,
+                false,
+                false,
+                gemm::Parallelism::None,
+            );
+        }
+    }
+}
+
+/// `y += Σᵢ x[i]·Wᵀ[i]` (the rows of `weight_t`, each `y.len()` long), skipping zero inputs:
+/// axpys, compiled for each SIMD level and picked at run time.
+#[multiversion::multiversion(targets = "simd")]
+fn add_row_combination(x: &[f32], weight_t: &[f32], y: &mut [f32]) {
+    for (&a, w) in x.iter().zip(weight_t.chunks_exact(y.len())) {
+        if a != 0.0 {
+            for (o, &wo) in y.iter_mut().zip(w) {
+                *o += a * wo;
             }
-            if self.relu {
-                for v in y.iter_mut() {
-                    *v = v.max(0.0);
-                }
+        }
+    }
+}
+
+/// LayerNorm (where the layer has one) and ReLU (where it has one) on each `width`-value row,
+/// compiled for each SIMD level and picked at run time.
+#[multiversion::multiversion(targets = "simd")]
+fn normalize_and_activate(output: &mut [f32], width: usize, norm: Option<(&[f32], &[f32])>, relu: bool) {
+    for y in output.chunks_exact_mut(width) {
+        if let Some((scale, shift)) = norm {
+            layer_norm(y, scale, shift);
+        }
+        if relu {
+            for v in y.iter_mut() {
+                *v = v.max(0.0);
             }
         }
     }
@@ -183,14 +218,35 @@ fn transpose(matrix: &[f32], rows: usize, cols: usize) -> Vec<f32> {
     out
 }
 
+/// PyTorch's LayerNorm (biased variance) over one sample's values, in f32 as PyTorch computes
+/// it. The sums run over [`LANES`] interleaved partial sums, a fixed order the compiler can keep
+/// in SIMD registers (one running sum would forbid that), and two passes (mean, then the
+/// centred squares) keep the variance accurate.
+#[inline(always)]
 fn layer_norm(values: &mut [f32], scale: &[f32], shift: &[f32]) {
-    let n = values.len() as f64;
-    let mean = values.iter().map(|&v| f64::from(v)).sum::<f64>() / n;
-    let var = values.iter().map(|&v| (f64::from(v) - mean).powi(2)).sum::<f64>() / n;
-    let inv_std = 1.0 / (var + f64::from(LAYER_NORM_EPS)).sqrt();
+    let n = values.len() as f32;
+    let mean = lane_sum(values, |v| v) / n;
+    let var = lane_sum(values, |v| (v - mean) * (v - mean)) / n;
+    let inv_std = 1.0 / (var + LAYER_NORM_EPS).sqrt();
     for ((v, g), b) in values.iter_mut().zip(scale).zip(shift) {
-        *v = ((f64::from(*v) - mean) * inv_std) as f32 * g + b;
+        *v = (*v - mean) * inv_std * g + b;
     }
+}
+
+/// Partial sums kept side by side in [`lane_sum`].
+const LANES: usize = 16;
+
+#[inline(always)]
+fn lane_sum(values: &[f32], f: impl Fn(f32) -> f32) -> f32 {
+    let mut lanes = [0.0f32; LANES];
+    let mut chunks = values.chunks_exact(LANES);
+    for chunk in &mut chunks {
+        for (lane, &v) in lanes.iter_mut().zip(chunk) {
+            *lane += f(v);
+        }
+    }
+    let tail: f32 = chunks.remainder().iter().map(|&v| f(v)).sum();
+    lanes.iter().sum::<f32>() + tail
 }
 
 fn argmax(values: &[f32]) -> u32 {

@@ -208,6 +208,11 @@ pub struct LearnerSection {
     /// Write a checkpoint every this many updates (0: only at the end).
     pub checkpoint_every: u64,
     pub keep_checkpoints: usize,
+    /// Greedy episodes each periodic checkpoint is evaluated on, the best one being kept as
+    /// `checkpoints/best` (`crate::best`; 0: off).
+    pub best_episodes: u32,
+    /// Simulated seconds per such episode.
+    pub best_seconds: f32,
     /// Also snapshot the replay buffer in the final checkpoint.
     pub snapshot_replay: bool,
     /// Seconds between status lines.
@@ -232,6 +237,8 @@ impl Default for LearnerSection {
             weights_every: 50,
             checkpoint_every: 5_000,
             keep_checkpoints: 3,
+            best_episodes: 0,
+            best_seconds: 20.0,
             snapshot_replay: true,
             status_every_s: 5.0,
             max_updates: 0,
@@ -417,6 +424,23 @@ impl TrainConfig {
         }
         if l.keep_checkpoints == 0 {
             return Err(invalid("learner.keep_checkpoints", "0".into(), "at least 1"));
+        }
+        if l.best_episodes > 1000 {
+            return Err(invalid(
+                "learner.best_episodes",
+                l.best_episodes.to_string(),
+                "an integer in 0..=1000 (0: off)",
+            ));
+        }
+        if !(l.best_seconds.is_finite() && l.best_seconds > 0.0 && l.best_seconds <= 3600.0) {
+            return Err(invalid("learner.best_seconds", l.best_seconds.to_string(), "seconds in (0, 3600]"));
+        }
+        if l.best_episodes > 0 && l.checkpoint_every == 0 {
+            return Err(invalid(
+                "learner.best_episodes",
+                l.best_episodes.to_string(),
+                "0 when learner.checkpoint_every is 0 (only periodic checkpoints are evaluated)",
+            ));
         }
         if !(l.status_every_s.is_finite() && l.status_every_s > 0.0) {
             return Err(invalid("learner.status_every_s", l.status_every_s.to_string(), "a positive number"));

@@ -6,6 +6,7 @@ use tch::{Kind, Reduction, Tensor};
 
 use super::adam::{AdamConfig, FlatAdam};
 use super::network::QNetwork;
+use super::tensor_memory;
 
 /// One sampled minibatch, already as tensors. `discount` is γⁿ for an n-step transition that
 /// bootstraps and 0 for one that ended in termination.
@@ -72,7 +73,12 @@ impl Dqn {
             } else {
                 next_target_q.max_dim(1, false).0
             };
-            &batch.returns * self.config.reward_scale + &batch.discounts * bootstrap
+            let discounted = &batch.discounts * bootstrap;
+            if self.config.reward_scale == 1.0 {
+                discounted + &batch.returns
+            } else {
+                discounted + &batch.returns * self.config.reward_scale
+            }
         })
     }
 
@@ -88,8 +94,8 @@ impl Dqn {
             Some(w) => (elementwise * w).mean(Kind::Float),
             None => elementwise.mean(Kind::Float),
         };
-        let grad = self.online.flat_gradient(&loss);
-        let grad_norm = grad.norm().double_value(&[]);
+        let grad = self.online.gradient(&loss);
+        let grad_norm = grad.l2_norm();
         let loss_value = loss.double_value(&[]);
         if !(loss_value.is_finite() && grad_norm.is_finite() && grad_norm < MAX_APPLIED_GRAD_NORM) {
             // One bad batch must not poison the weights: skip the step, report it.
@@ -101,11 +107,12 @@ impl Dqn {
                 grad_norm,
             };
         }
-        let grad = match self.config.max_grad_norm {
-            Some(max) if grad_norm > max => grad * (max / (grad_norm + 1e-6)),
-            _ => grad,
+        // Clipping as torch.nn.utils.clip_grad_norm_ does it, folded into Adam's pass.
+        let grad_scale = match self.config.max_grad_norm {
+            Some(max) if grad_norm > max => (max / (grad_norm + 1e-6)) as f32,
+            _ => 1.0,
         };
-        self.optimizer.step(self.online.flat_mut(), &grad);
+        self.optimizer.step(self.online.flat_mut(), &grad, grad_scale);
         self.updates += 1;
         match self.config.target_update {
             TargetUpdate::Hard { every } => {
@@ -115,18 +122,23 @@ impl Dqn {
             }
             TargetUpdate::Polyak { tau } => self.target.polyak_from(&self.online, tau),
         }
-        let td = (&q - &targets).detach().abs();
-        UpdateStats {
-            applied: true,
-            loss: loss_value,
-            mean_q: q.detach().mean(Kind::Float).double_value(&[]),
-            td_errors: Vec::<f32>::try_from(&td).unwrap_or_default(),
-            grad_norm,
-        }
+        let (mean_q, td_errors) = td_summary(&q.detach().contiguous(), &targets.contiguous());
+        UpdateStats { applied: true, loss: loss_value, mean_q, td_errors, grad_norm }
     }
 
     /// Q-values of the online network for `batch × obs_dim` observations.
     pub fn q_values(&self, observations: &Tensor) -> Tensor {
         tch::no_grad(|| self.online.forward(observations))
     }
+}
+
+/// The batch's mean Q and each sample's |TD error|, in one pass over the two vectors (as
+/// tensor ops it would be four ops and a copy).
+fn td_summary(q: &Tensor, targets: &Tensor) -> (f64, Vec<f32>) {
+    // SAFETY: `q` and `targets` are this update's own results; nothing writes them while the
+    // slices live.
+    #[allow(unsafe_code)]
+    let (q, targets) = unsafe { (tensor_memory::f32s(q), tensor_memory::f32s(targets)) };
+    let mean_q = q.iter().map(|&v| f64::from(v)).sum::<f64>() / q.len().max(1) as f64;
+    (mean_q, q.iter().zip(targets).map(|(a, b)| (a - b).abs()).collect())
 }

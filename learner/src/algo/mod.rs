@@ -4,3 +4,4 @@
 pub mod adam;
 pub mod dqn;
 pub mod network;
+pub(crate) mod tensor_memory;

@@ -12,6 +12,64 @@
 use crawler_actor::policy::{NetworkSpec, ParamInfo};
 use tch::{Kind, Tensor};
 
+/// A gradient, one tensor per parameter in slot order: laid end to end they match the flat
+/// buffer. Kept in parts because joining them would copy the whole network once more.
+#[derive(Debug)]
+pub struct Gradient {
+    parts: Vec<Tensor>,
+}
+
+impl Gradient {
+    /// The parts as contiguous f32 tensors (autograd's usually are; others are copied).
+    pub fn from_parts(parts: Vec<Tensor>) -> Self {
+        let parts = parts.into_iter().map(|p| p.detach().to_kind(Kind::Float).contiguous()).collect();
+        Self { parts }
+    }
+
+    /// Values in all the parts.
+    pub fn numel(&self) -> usize {
+        self.parts.iter().map(Tensor::numel).sum()
+    }
+
+    /// Each part's values, in slot order.
+    pub fn for_each_part(&self, mut f: impl FnMut(&[f32])) {
+        for part in &self.parts {
+            // SAFETY: the parts are this gradient's own tensors: autograd's results, which
+            // nothing else holds, or copies made in `from_parts`; nothing writes them while
+            // `f` reads, since `f` cannot reach them through `&self`'s shared borrow.
+            #[allow(unsafe_code)]
+            f(unsafe { super::tensor_memory::f32s(part) });
+        }
+    }
+
+    /// The L2 norm over all parts (∞ if it overflows f32, as libtorch's norm would).
+    pub fn l2_norm(&self) -> f64 {
+        let mut sum = 0.0f64;
+        self.for_each_part(|values| sum += f64::from(sum_of_squares(values)));
+        sum.sqrt()
+    }
+
+    /// The parts joined into one flat tensor, laid out like the parameter buffer.
+    pub fn to_flat(&self) -> Tensor {
+        Tensor::cat(&self.parts.iter().map(|p| p.view([-1])).collect::<Vec<_>>(), 0)
+    }
+}
+
+/// Σ v², over 16 interleaved partial sums: a fixed order the compiler keeps in SIMD registers,
+/// compiled for each SIMD level and picked at run time.
+#[multiversion::multiversion(targets = "simd")]
+fn sum_of_squares(values: &[f32]) -> f32 {
+    const LANES: usize = 16;
+    let mut lanes = [0.0f32; LANES];
+    let mut chunks = values.chunks_exact(LANES);
+    for chunk in &mut chunks {
+        for (lane, &v) in lanes.iter_mut().zip(chunk) {
+            *lane += v * v;
+        }
+    }
+    lanes.iter().sum::<f32>() + chunks.remainder().iter().map(|v| v * v).sum::<f32>()
+}
+
 /// Parameters that do not fit the network they are meant for.
 #[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
 #[error("{found} parameter values ({kind}) given; the network needs {expected} f32")]
@@ -109,12 +167,10 @@ impl QNetwork {
         &self.params
     }
 
-    /// The gradient of `loss` with respect to every parameter, as one flat tensor laid out
-    /// like the buffer.
-    pub fn flat_gradient(&self, loss: &Tensor) -> Tensor {
-        let grads = Tensor::run_backward(&[loss], &self.params, false, false);
-        let flattened: Vec<Tensor> = grads.iter().map(|g| g.view([-1])).collect();
-        Tensor::cat(&flattened, 0)
+    /// The gradient of `loss` with respect to every parameter.
+    pub fn gradient(&self, loss: &Tensor) -> Gradient {
+        let parts = Tensor::run_backward(&[loss], &self.params, false, false);
+        Gradient::from_parts(parts)
     }
 
     fn param(&self, index: usize) -> Tensor {

@@ -29,6 +29,7 @@ use zenoh::qos::CongestionControl;
 use crate::checkpoint::{Checkpoint, CheckpointError, Progress};
 
 pub mod access_control;
+mod best_keeper;
 mod edge;
 mod telemetry;
 mod trainer;
@@ -56,6 +57,8 @@ pub enum ServiceError {
     TrainingThread(#[source] std::io::Error),
     #[error("the training thread panicked; the log above says where")]
     TrainingThreadPanicked,
+    #[error("cannot start the best-checkpoint thread: {0}")]
+    BestThread(#[source] std::io::Error),
 }
 
 fn zenoh_error(context: impl Into<String>) -> impl FnOnce(zenoh::Error) -> ServiceError {

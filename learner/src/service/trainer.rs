@@ -14,6 +14,7 @@ use rand_chacha::ChaCha8Rng;
 use tch::Tensor;
 use tracing::{info, warn};
 
+use super::best_keeper::BestFeed;
 use super::edge::{Shared, lock, mean_epsilon};
 use super::telemetry::{Telemetry, TrainingNow};
 use super::{Outcome, ServiceError};
@@ -81,6 +82,8 @@ struct Trainer<'a> {
     prior_seconds: f64,
     last_checkpoint: Option<PathBuf>,
     telemetry: Telemetry,
+    /// Periodic checkpoints go here to be evaluated for `checkpoints/best`.
+    best: BestFeed,
 }
 
 impl<'a> Trainer<'a> {
@@ -152,6 +155,12 @@ impl<'a> Trainer<'a> {
             progress,
             session_start: Instant::now(),
             last_checkpoint: None,
+            best: BestFeed::start(
+                &run_dir.join("checkpoints"),
+                config.learner.best_episodes,
+                config.learner.best_seconds,
+            )
+            .map_err(ServiceError::BestThread)?,
         })
     }
 
@@ -230,7 +239,10 @@ impl<'a> Trainer<'a> {
             // A failed periodic checkpoint (disk full, say) is logged; training goes on and the
             // older checkpoints stay. The final one's error is returned.
             match self.save_checkpoint(false) {
-                Ok(path) => self.last_checkpoint = Some(path),
+                Ok(path) => {
+                    self.best.offer(&path);
+                    self.last_checkpoint = Some(path);
+                }
                 Err(e) => warn!("periodic checkpoint failed: {e}"),
             }
         }

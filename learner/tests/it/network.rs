@@ -24,7 +24,7 @@ fn plain_rust_inference_matches_the_tch_forward_pass() {
         tch::manual_seed(seed as i64);
         let network = QNetwork::new(spec, true);
         let policy = MlpPolicy::from_safetensors(&encode_weights(&network), spec).unwrap();
-        for batch in [1i64, 16] {
+        for batch in [1i64, 5, 16] {
             // Observation-like inputs: mostly O(1), some large (touch forces reach tens of N).
             let inputs = Tensor::randn([batch, spec.obs_dim as i64], (Kind::Float, tch::Device::Cpu)) * 5.0;
             let expected: Vec<f32> = Vec::try_from(tch::no_grad(|| network.forward(&inputs)).flatten(0, -1)).unwrap();
@@ -72,8 +72,8 @@ fn flat_adam_matches_libtorch_adam() {
         let inputs = Tensor::randn([32, 40], (Kind::Float, tch::Device::Cpu));
         let targets = Tensor::randn([32, 25], (Kind::Float, tch::Device::Cpu));
         let loss = ours.forward(&inputs).mse_loss(&targets, tch::Reduction::Mean);
-        let grad = ours.flat_gradient(&loss);
-        adam.step(ours.flat_mut(), &grad);
+        let grad = ours.gradient(&loss);
+        adam.step(ours.flat_mut(), &grad, 1.0);
         let reference_loss = forward_with(&spec, &reference_params, &inputs).mse_loss(&targets, tch::Reduction::Mean);
         torch_adam.backward_step(&reference_loss);
         let reference_flat =

@@ -10,6 +10,7 @@ use std::time::Duration;
 
 use crawler_learner::algo::dqn::Dqn;
 use crawler_learner::checkpoint::{self, Progress};
+use crawler_run::best;
 use crawler_run::config::TrainConfig;
 use crawler_run::metrics;
 use crawler_tests::{Learner, binary, repo_root};
@@ -117,6 +118,34 @@ fn a_run_writes_metrics_that_plot_and_render_turn_into_pictures() {
     // 2 s at 25 fps, plus the pose at t = 0.
     assert_eq!(frames, 51);
     assert_eq!(report["frames"], 51);
+}
+
+#[test]
+fn the_best_checkpoint_by_greedy_evaluation_is_kept_and_eval_reproduces_it() {
+    let runs = tempfile::tempdir().unwrap();
+    let args = ["--set", "learner.best_episodes=2", "--set", "learner.best_seconds=1.0"];
+    let mut learner = Learner::builder(runs.path(), "best").actors(1).args(&args).start();
+    let checkpoints = runs.path().join("best").join("checkpoints");
+    let record = checkpoints.join(best::BEST_DIR).join(best::EVALUATION_FILE);
+    learner.wait_for(Duration::from_secs(180), "a best checkpoint", |_| record.is_file());
+    let exit = learner.terminate(Duration::from_secs(60));
+    assert!(exit.success(), "{exit}");
+
+    let kept: best::Evaluation = serde_json::from_slice(&std::fs::read(&record).unwrap()).unwrap();
+    assert!(kept.checkpoint.starts_with("step-"), "{kept:?}");
+    assert_eq!((kept.episodes, kept.seconds), (2, 1.0));
+    // `eval` of checkpoints/best replays the same seeds and gets the same numbers.
+    let best_dir = checkpoints.join(best::BEST_DIR);
+    let output = run("eval", &[best_dir.to_str().unwrap(), "--episodes", "2", "--seconds", "1"]);
+    let report: serde_json::Value = serde_json::from_slice(&output.stdout).unwrap();
+    assert_eq!(report["updates"].as_u64().unwrap(), kept.updates);
+    assert!((report["speed"]["mean"].as_f64().unwrap() - kept.mean_speed).abs() < 1e-6, "{report} vs {kept:?}");
+    assert_eq!(report["flips"].as_u64().unwrap(), u64::from(kept.flips));
+    // The newest checkpoint is still a step-… one: `best` is beside them, not among them.
+    let newest = checkpoint::latest(&checkpoints).unwrap();
+    assert!(newest.file_name().unwrap().to_str().unwrap().starts_with("step-"), "{}", newest.display());
+    // The learner waited for the evaluation in progress: no candidate copy is left behind.
+    assert!(!checkpoints.join(".best-candidate").exists());
 }
 
 #[test]

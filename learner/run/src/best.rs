@@ -1,0 +1,202 @@
+//! The best checkpoint by greedy evaluation, kept beside the newest ones (as SB3's
+//! `EvalCallback` keeps `best_model`).
+//!
+//! Why: DQN's greedy speed swings between checkpoints, and at fine control rates a policy can
+//! collapse within a minute (EXPERIMENTS.md, `transfer-a`: 0.64 m/s at 823 s, stuck at 900 s).
+//! The checkpoint to ship is the best one evaluated, not the last. Each periodic checkpoint is
+//! copied aside, played for a few greedy episodes with `eval`'s seeds and nominal physics, and
+//! becomes `checkpoints/best` when it beats the best so far. `eval runs/<run>/checkpoints/best`
+//! reproduces its numbers (the same seeds).
+//!
+//! Ranking: a checkpoint whose episodes never flip the base and never get stuck beats any that
+//! does; among equals, the higher mean speed wins. A fast gait that tumbles is not a gait.
+
+use std::fs;
+use std::path::{Path, PathBuf};
+
+use serde::{Deserialize, Serialize};
+
+use crate::evaluate::{EvaluateError, evaluation_env, greedy_episode, load_policy};
+
+/// `eval`'s first seed: episode i of an evaluation uses `EVAL_SEED + i`.
+pub const EVAL_SEED: u64 = 1_000_000;
+/// An episode slower than this (m/s) is stuck (`eval`'s definition).
+pub const STUCK_SPEED: f32 = 0.05;
+/// The directory under `checkpoints/` that holds the best checkpoint.
+pub const BEST_DIR: &str = "best";
+/// Where a candidate is copied while it is evaluated (never a `step-` name, so checkpoint
+/// pruning and `latest` leave it alone).
+const CANDIDATE_DIR: &str = ".best-candidate";
+/// The evaluation that made a checkpoint the best, inside its directory.
+pub const EVALUATION_FILE: &str = "evaluation.json";
+
+#[derive(Debug, thiserror::Error)]
+pub enum BestError {
+    #[error("{action} {path}: {source}")]
+    Io { action: &'static str, path: PathBuf, source: std::io::Error },
+    #[error("evaluating {path}: {source}")]
+    Evaluate { path: PathBuf, source: EvaluateError },
+    #[error("{path}: {source}")]
+    Json { path: PathBuf, source: serde_json::Error },
+}
+
+fn io(action: &'static str, path: &Path) -> impl FnOnce(std::io::Error) -> BestError {
+    let path = path.to_path_buf();
+    move |source| BestError::Io { action, path, source }
+}
+
+/// What a greedy evaluation of one checkpoint measured.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct Evaluation {
+    /// The checkpoint's directory name (`step-…`).
+    pub checkpoint: String,
+    pub updates: u64,
+    pub train_seconds: f64,
+    pub episodes: u32,
+    pub seconds: f32,
+    pub mean_speed: f64,
+    pub min_speed: f64,
+    pub flips: u32,
+    pub stuck_episodes: u32,
+}
+
+impl Evaluation {
+    /// Whether no episode flipped the base or got stuck.
+    pub fn clean(&self) -> bool {
+        self.flips == 0 && self.stuck_episodes == 0
+    }
+
+    /// Whether this evaluation ranks above `other` (see the module's ranking).
+    pub fn beats(&self, other: &Evaluation) -> bool {
+        match (self.clean(), other.clean()) {
+            (true, false) => true,
+            (false, true) => false,
+            _ => self.mean_speed > other.mean_speed,
+        }
+    }
+}
+
+/// Greedy episodes of the checkpoint at `path` on the nominal physics, with `eval`'s seeds.
+pub fn evaluate_checkpoint(path: &Path, episodes: u32, seconds: f32) -> Result<Evaluation, EvaluateError> {
+    let loaded = load_policy(path, &[])?;
+    let env = evaluation_env(&loaded.config.env, seconds)?;
+    let mut speeds = Vec::with_capacity(episodes as usize);
+    let mut flips = 0;
+    for i in 0..u64::from(episodes) {
+        let (summary, _) = greedy_episode(&loaded.policy, &env, EVAL_SEED + i, false)?;
+        speeds.push(f64::from(summary.speed));
+        flips += summary.flips;
+    }
+    let name = loaded.path.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_default();
+    Ok(Evaluation {
+        checkpoint: name,
+        updates: loaded.meta.progress.updates,
+        train_seconds: loaded.meta.progress.train_seconds,
+        episodes,
+        seconds,
+        mean_speed: speeds.iter().sum::<f64>() / speeds.len().max(1) as f64,
+        min_speed: speeds.iter().copied().fold(f64::INFINITY, f64::min),
+        flips,
+        stuck_episodes: speeds.iter().filter(|&&s| s < f64::from(STUCK_SPEED)).count() as u32,
+    })
+}
+
+/// Keeps `checkpoints/best`: the best of the checkpoints it is shown.
+#[derive(Debug)]
+pub struct BestKeeper {
+    checkpoints: PathBuf,
+    episodes: u32,
+    seconds: f32,
+    best: Option<Evaluation>,
+}
+
+impl BestKeeper {
+    /// A keeper for the run whose checkpoints live in `checkpoints`. A best checkpoint already
+    /// there (a resumed run) is the one to beat.
+    pub fn new(checkpoints: &Path, episodes: u32, seconds: f32) -> Self {
+        let record = checkpoints.join(BEST_DIR).join(EVALUATION_FILE);
+        let best = fs::read(&record).ok().and_then(|bytes| serde_json::from_slice(&bytes).ok());
+        Self { checkpoints: checkpoints.to_path_buf(), episodes, seconds, best }
+    }
+
+    pub fn best(&self) -> Option<&Evaluation> {
+        self.best.as_ref()
+    }
+
+    /// Copies the checkpoint at `path` aside (it may be pruned meanwhile), evaluates the copy
+    /// and, if it beats the best so far, makes it `checkpoints/best`. Returns its evaluation
+    /// and whether it became the best.
+    pub fn consider(&mut self, path: &Path) -> Result<(Evaluation, bool), BestError> {
+        let candidate = self.checkpoints.join(CANDIDATE_DIR);
+        copy_checkpoint(path, &candidate)?;
+        let mut evaluation = evaluate_checkpoint(&candidate, self.episodes, self.seconds)
+            .map_err(|source| BestError::Evaluate { path: path.to_path_buf(), source })?;
+        if let Some(name) = path.file_name() {
+            evaluation.checkpoint = name.to_string_lossy().into_owned();
+        }
+        let better = self.best.as_ref().is_none_or(|best| evaluation.beats(best));
+        if better {
+            let record = candidate.join(EVALUATION_FILE);
+            let json = serde_json::to_vec_pretty(&evaluation)
+                .map_err(|source| BestError::Json { path: record.clone(), source })?;
+            fs::write(&record, json).map_err(io("write", &record))?;
+            let best = self.checkpoints.join(BEST_DIR);
+            if best.exists() {
+                fs::remove_dir_all(&best).map_err(io("remove", &best))?;
+            }
+            fs::rename(&candidate, &best).map_err(io("rename", &candidate))?;
+            self.best = Some(evaluation.clone());
+        } else {
+            fs::remove_dir_all(&candidate).map_err(io("remove", &candidate))?;
+        }
+        Ok((evaluation, better))
+    }
+}
+
+/// Copies the files of checkpoint directory `from` into a fresh `to`.
+fn copy_checkpoint(from: &Path, to: &Path) -> Result<(), BestError> {
+    if to.exists() {
+        fs::remove_dir_all(to).map_err(io("remove", to))?;
+    }
+    fs::create_dir_all(to).map_err(io("create", to))?;
+    for entry in fs::read_dir(from).map_err(io("read", from))? {
+        let entry = entry.map_err(io("read", from))?;
+        if entry.file_type().map_err(io("read", from))?.is_file() {
+            let target = to.join(entry.file_name());
+            fs::copy(entry.path(), &target).map_err(io("copy", &entry.path()))?;
+        }
+    }
+    Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn evaluation(mean_speed: f64, flips: u32, stuck_episodes: u32) -> Evaluation {
+        Evaluation {
+            checkpoint: "step-000000000001".into(),
+            updates: 1,
+            train_seconds: 1.0,
+            episodes: 5,
+            seconds: 20.0,
+            mean_speed,
+            min_speed: 0.0,
+            flips,
+            stuck_episodes,
+        }
+    }
+
+    #[test]
+    fn a_clean_checkpoint_beats_a_faster_one_that_flips_or_sticks() {
+        let clean = evaluation(0.4, 0, 0);
+        assert!(clean.beats(&evaluation(0.9, 3, 0)));
+        assert!(clean.beats(&evaluation(0.9, 0, 1)));
+        assert!(!evaluation(0.9, 3, 0).beats(&clean));
+        // Among equals the faster wins; a tie keeps the earlier best.
+        assert!(evaluation(0.5, 0, 0).beats(&clean));
+        assert!(!evaluation(0.3, 0, 0).beats(&clean));
+        assert!(!evaluation(0.4, 0, 0).beats(&clean));
+        assert!(evaluation(0.2, 1, 0).beats(&evaluation(0.1, 0, 2)));
+    }
+}
