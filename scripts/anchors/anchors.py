@@ -18,7 +18,9 @@ workloads here mirror that file row by row. Everything runs on one thread.
                        configured, Adam): the learner's libtorch path against PyTorch with
                        Adam(fused=True), as a PyTorch user would write it.
 
-Output: one line per row and, with --json, the rows as JSON lines on stdout.
+Each row is measured --repeat times (default 3), project then anchor each time; the line
+gives the medians and the spread of the ratios. Output: one line per row on stderr and, with
+--json, the rows as JSON lines on stdout.
 """
 
 from __future__ import annotations
@@ -26,6 +28,7 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import statistics
 import subprocess
 import sys
 import time
@@ -151,6 +154,7 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--rows", nargs="*", default=["physics", "inference-b1", "inference-b8", "inference-b16",
                                                       *UPDATES])
+    parser.add_argument("--repeat", type=int, default=3, help="back-to-back pairs per row (medians reported)")
     parser.add_argument("--json", action="store_true", help="also print the rows as JSON lines on stdout")
     parser.add_argument("command", nargs=argparse.REMAINDER, help="the project's side: a command taking a row")
     args = parser.parse_args()
@@ -162,21 +166,32 @@ def main() -> None:
     results = []
     print(f"{'row':<20} {'project':>12} {'anchor':>12}  unit       ratio (higher: project ahead)  anchor", file=sys.stderr)
     for row in args.rows:
-        result = project(command, row)
-        if row == "physics":
-            result |= physics_anchor()
-        elif row in UPDATES:
-            result |= update_anchor(row)
-        # For times (µs) the project is ahead when its time is smaller.
-        lower_is_better = result["unit"] == "µs"
-        result["ratio"] = result["anchor"] / result["project"] if lower_is_better else result["project"] / result["anchor"]
+        # Each repeat times the project and then its anchor, back to back; the medians are
+        # reported, so that one noisy second on a shared machine does not decide a row.
+        repeats = []
+        for _ in range(args.repeat):
+            result = project(command, row)
+            if row == "physics":
+                result |= physics_anchor()
+            elif row in UPDATES:
+                result |= update_anchor(row)
+            # For times (µs) the project is ahead when its time is smaller.
+            lower_is_better = result["unit"] == "µs"
+            result["ratio"] = (result["anchor"] / result["project"] if lower_is_better
+                               else result["project"] / result["anchor"])
+            repeats.append(result)
+        result = dict(repeats[0])
+        for key in ("project", "anchor", "ratio"):
+            result[key] = statistics.median(r[key] for r in repeats)
+        result["ratios"] = [round(r["ratio"], 3) for r in repeats]
         results.append(result)
         extra = ""
         if row == "physics":
             extra = (f"  (speed {result['speed']:.3f} m/s, {result['flips']} flips here; "
                      f"{result['anchor_speed']:.3f} m/s, {result['anchor_flips']} flips there)")
+        spread = f"{min(result['ratios']):.2f}-{max(result['ratios']):.2f}"
         print(f"{row:<20} {result['project']:>12.1f} {result['anchor']:>12.1f}  {result['unit']:<10} "
-              f"{result['ratio']:>5.2f}x                        {result['anchor_name']}{extra}", file=sys.stderr)
+              f"{result['ratio']:>5.2f}x (of {args.repeat}: {spread})   {result['anchor_name']}{extra}", file=sys.stderr)
     if args.json:
         for result in results:
             print(json.dumps(result))

@@ -19,6 +19,8 @@ pub enum PolicyError {
     Mismatch { name: String, dtype: String, shape: Vec<usize>, expected: Vec<usize> },
     #[error("tensor `{0}` holds a NaN or infinite value")]
     NonFinite(String),
+    #[error("{found} parameter values given; the network spec needs {expected}")]
+    ParameterCount { found: usize, expected: usize },
     #[error("input holds {len} values, not a whole number of {obs_dim}-value observations")]
     InputSize { len: usize, obs_dim: usize },
 }
@@ -138,44 +140,103 @@ impl Dense {
         normalize_and_activate(output, self.outputs, norm, self.relu);
     }
 
-    /// `Y += X·Wᵀ` for `batch` observations: the `gemm` crate's register-blocked kernels,
-    /// dispatched at run time to the CPU's SIMD (SSE, AVX2+FMA, AVX-512).
+    /// `Y += X·Wᵀ` for `batch` observations.
     fn add_product(&self, x: &[f32], batch: usize, y: &mut [f32]) {
-        let (inputs, outputs) = (self.inputs, self.outputs);
-        assert!(
-            x.len() == batch * inputs && y.len() == batch * outputs && self.weight_t.len() == inputs * outputs,
-            "matrix shapes are checked when the layer is built"
-        );
-        // SAFETY: the three pointers come from slices whose lengths were just checked to be
-        // exactly the row-major matrices described by the sizes and strides passed (X is
-        // batch × inputs, Wᵀ inputs × outputs, Y batch × outputs, unit column stride); `y`
-        // is borrowed mutably, so nothing else aliases it while gemm writes, and gemm runs
-        // on this thread only (Parallelism::None) before returning.
-        #[allow(unsafe_code)]
-        unsafe {
-            gemm::gemm(
-                batch,
-                outputs,
-                inputs,
-                y.as_mut_ptr(),
-                1,
-                outputs as isize,
-                true,
-                x.as_ptr(),
-                1,
-                inputs as isize,
-                self.weight_t.as_ptr(),
-                1,
-                outputs as isize,
-                1.0f32,
-                1.0f32,
-                false,
-                false,
-                false,
-                gemm::Parallelism::None,
-            );
-        }
+        add_matmul(x, batch, self.inputs, self.outputs, &self.weight_t, WeightLayout::InputsByOutputs, y);
     }
+}
+
+/// How a Linear layer's weights lie in memory.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum WeightLayout {
+    /// Wᵀ, `inputs × outputs`, row-major: the actors' own copy.
+    InputsByOutputs,
+    /// PyTorch's `weight`, `outputs × inputs`, row-major: the learner's flat buffer.
+    OutputsByInputs,
+}
+
+/// `Y += X·Wᵀ` with X `batch × inputs` and Y `batch × outputs` (row-major): the `gemm` crate's
+/// register-blocked kernels, dispatched at run time to the CPU's SIMD (SSE, AVX2+FMA,
+/// AVX-512). Either weight layout is read in place, through its strides.
+fn add_matmul(x: &[f32], batch: usize, inputs: usize, outputs: usize, w: &[f32], layout: WeightLayout, y: &mut [f32]) {
+    assert!(
+        x.len() == batch * inputs && y.len() == batch * outputs && w.len() == inputs * outputs,
+        "matrix shapes are checked when the layers are built"
+    );
+    // Wᵀ's element (i, o) is at i·row_stride + o·column_stride.
+    let (w_row_stride, w_column_stride) = match layout {
+        WeightLayout::InputsByOutputs => (outputs as isize, 1),
+        WeightLayout::OutputsByInputs => (1, inputs as isize),
+    };
+    // SAFETY: the three pointers come from slices whose lengths were just checked to hold
+    // exactly the matrices the sizes and strides describe (X batch × inputs and Y batch ×
+    // outputs row-major, Wᵀ inputs × outputs in either layout, every index in bounds); `y` is
+    // borrowed mutably, so nothing else aliases it while gemm writes, and gemm runs on this
+    // thread only (Parallelism::None) and returns before the borrows end.
+    #[allow(unsafe_code)]
+    unsafe {
+        gemm::gemm(
+            batch,
+            outputs,
+            inputs,
+            y.as_mut_ptr(),
+            1,
+            outputs as isize,
+            true,
+            x.as_ptr(),
+            1,
+            inputs as isize,
+            w.as_ptr(),
+            w_column_stride,
+            w_row_stride,
+            1.0f32,
+            1.0f32,
+            false,
+            false,
+            false,
+            gemm::Parallelism::None,
+        );
+    }
+}
+
+/// Q-values, `batch × num_actions`, of the network `spec` whose parameters lie end to end in
+/// `params` in `nn.Sequential` order and PyTorch's layout ([`NetworkSpec::params`]), for the
+/// observations laid end to end in `observations`. The learner's no-grad forward passes (the
+/// TD target's) run here, over its parameter buffer in place, with the actors' kernels.
+pub fn q_values_of_params(spec: &NetworkSpec, params: &[f32], observations: &[f32]) -> Result<Vec<f32>, PolicyError> {
+    let obs_dim = spec.obs_dim;
+    if !observations.len().is_multiple_of(obs_dim) {
+        return Err(PolicyError::InputSize { len: observations.len(), obs_dim });
+    }
+    let expected = spec.num_params();
+    if params.len() != expected {
+        return Err(PolicyError::ParameterCount { found: params.len(), expected });
+    }
+    let batch = observations.len() / obs_dim;
+    let mut rest = params;
+    let mut take = |n: usize| {
+        let (head, tail) = rest.split_at(n);
+        rest = tail;
+        head
+    };
+    let mut current = observations.to_vec();
+    let mut next = Vec::new();
+    let mut inputs = obs_dim;
+    let widths = spec.hidden.iter().map(|&w| (w, true)).chain(std::iter::once((spec.num_actions, false)));
+    for (outputs, hidden) in widths {
+        let (weight, bias) = (take(outputs * inputs), take(outputs));
+        let norm = (hidden && spec.layer_norm).then(|| (take(outputs), take(outputs)));
+        next.clear();
+        next.resize(batch * outputs, 0.0);
+        for y in next.chunks_exact_mut(outputs) {
+            y.copy_from_slice(bias);
+        }
+        add_matmul(&current, batch, inputs, outputs, weight, WeightLayout::OutputsByInputs, &mut next);
+        normalize_and_activate(&mut next, outputs, norm, hidden);
+        std::mem::swap(&mut current, &mut next);
+        inputs = outputs;
+    }
+    Ok(current)
 }
 
 /// `y += Σᵢ x[i]·Wᵀ[i]` (the rows of `weight_t`, each `y.len()` long), skipping zero inputs:
@@ -249,7 +310,8 @@ fn lane_sum(values: &[f32], f: impl Fn(f32) -> f32) -> f32 {
     lanes.iter().sum::<f32>() + tail
 }
 
-fn argmax(values: &[f32]) -> u32 {
+/// The index of the largest value (ties go to the lowest index, as PyTorch's `argmax`).
+pub fn argmax(values: &[f32]) -> u32 {
     let mut best = 0;
     for (i, v) in values.iter().enumerate() {
         if *v > values[best] {
