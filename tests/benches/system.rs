@@ -17,7 +17,7 @@ fn main() {
     let seconds: u64 = std::env::var("SYSTEM_BENCH_SECONDS").ok().and_then(|s| s.parse().ok()).unwrap_or(90);
     let runs = tempfile::tempdir().unwrap();
     let extra = ["--set", "learner.status_every_s=5.0"];
-    let capacity = crawler_run::config::TrainConfig::load(std::path::Path::new(CONFIG), &[])
+    let capacity = crawler_run::config::TrainConfig::load(&crawler_tests::repo_root().join(CONFIG), &[])
         .unwrap_or_else(|e| panic!("{CONFIG}: {e}"))
         .replay
         .capacity;
@@ -49,7 +49,9 @@ fn main() {
             status["env_steps_per_second"].as_f64().unwrap_or(f64::NAN),
             replay_len,
         );
-        if at_full.is_none() && replay_len >= capacity as u64 {
+        // Full: the ring's slots are all used. Each episode's last observation holds a slot
+        // without being a transition, so the sampleable count stays a little below capacity.
+        if at_full.is_none() && replay_len as f64 >= 0.99 * capacity as f64 {
             at_full = Some((learner_rss, actors.clone()));
         }
         latest = (learner_rss, actors);
