@@ -7,6 +7,8 @@
 //! `scripts/anchors/anchors.py`; a change to one must be made to the other.
 #![allow(clippy::print_stdout)]
 
+mod support;
+
 use std::time::{Duration, Instant};
 
 use crawler_actor::env::gait::SquareWaveGait;
@@ -39,16 +41,9 @@ const PHYSICS_STEPS: u32 = 10_000;
 /// How long each timed loop runs.
 const BUDGET: Duration = Duration::from_secs(3);
 
-/// Runs `f` repeatedly for about [`BUDGET`] after one warm-up call; returns calls per second.
-fn rate(mut f: impl FnMut()) -> f64 {
-    f();
-    let start = Instant::now();
-    let mut calls = 0u64;
-    while start.elapsed() < BUDGET {
-        f();
-        calls += 1;
-    }
-    calls as f64 / start.elapsed().as_secs_f64()
+/// Calls per second of `f` over [`BUDGET`].
+fn rate(f: impl FnMut()) -> f64 {
+    support::rate(BUDGET, f)
 }
 
 fn physics() -> serde_json::Value {

@@ -2,6 +2,8 @@
 //! `cargo bench -p crawler-learner --bench learner`
 #![allow(clippy::print_stdout)]
 
+mod support;
+
 use std::time::{Duration, Instant};
 
 use crawler_actor::policy::{MlpPolicy, NetworkSpec};
@@ -12,22 +14,11 @@ use crawler_learner::checkpoint::encode_weights;
 use crawler_learner::replay::{Replay, ReplayConfig, SampledBatch, StreamId, Transition};
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
+use support::rate;
 use tch::nn::OptimizerConfig;
 use tch::{Kind, Tensor, nn};
 
 const OBS: usize = 40;
-
-/// Runs `f` repeatedly for about `budget` and returns calls per second.
-fn rate(budget: Duration, mut f: impl FnMut()) -> f64 {
-    f();
-    let start = Instant::now();
-    let mut calls = 0u64;
-    while start.elapsed() < budget {
-        f();
-        calls += 1;
-    }
-    calls as f64 / start.elapsed().as_secs_f64()
-}
 
 fn random_batch(batch: i64) -> Batch {
     let cpu = (Kind::Float, tch::Device::Cpu);

@@ -4,9 +4,11 @@
 //! Why: DQN's greedy speed swings between checkpoints, and at fine control rates a policy can
 //! collapse within a minute (EXPERIMENTS.md, `transfer-a`: 0.64 m/s at 823 s, stuck at 900 s).
 //! The checkpoint to ship is the best one evaluated, not the last. Each periodic checkpoint is
-//! copied aside, played for a few greedy episodes with `eval`'s seeds and nominal physics, and
-//! becomes `checkpoints/best` when it beats the best so far. `eval runs/<run>/checkpoints/best`
-//! reproduces its numbers (the same seeds).
+//! copied aside, played for a few greedy episodes with `eval`'s seeds (on the nominal physics,
+//! or `eval --perturbed`'s), and becomes `checkpoints/best` when it beats the best so far.
+//! `eval runs/<run>/checkpoints/best [--perturbed]` reproduces its numbers (the same seeds).
+//! Few nominal episodes can hide a gait that sticks or tumbles from other starts; perturbed
+//! ones show it (EXPERIMENTS.md, `transfer-polyak-s1`).
 //!
 //! Ranking: a checkpoint whose episodes never flip the base and never get stuck beats any that
 //! does; among equals, the higher mean speed wins. A fast gait that tumbles is not a gait.
@@ -15,6 +17,8 @@ use std::fs;
 use std::path::{Path, PathBuf};
 
 use serde::{Deserialize, Serialize};
+
+use crawler_actor::env::Randomization;
 
 use crate::evaluate::{EvaluateError, evaluation_env, greedy_episode, load_policy};
 
@@ -54,6 +58,9 @@ pub struct Evaluation {
     pub train_seconds: f64,
     pub episodes: u32,
     pub seconds: f32,
+    /// Whether the episodes ran `eval --perturbed`'s physics.
+    #[serde(default)]
+    pub perturbed: bool,
     pub mean_speed: f64,
     pub min_speed: f64,
     pub flips: u32,
@@ -76,10 +83,24 @@ impl Evaluation {
     }
 }
 
-/// Greedy episodes of the checkpoint at `path` on the nominal physics, with `eval`'s seeds.
-pub fn evaluate_checkpoint(path: &Path, episodes: u32, seconds: f32) -> Result<Evaluation, EvaluateError> {
+/// How each checkpoint is evaluated.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct EvaluationPlan {
+    pub episodes: u32,
+    pub seconds: f32,
+    /// Run `eval --perturbed`'s physics (`Randomization::EVAL_PERTURBATIONS`) instead of the
+    /// nominal one: a gait that survives them is likelier to survive another simulator.
+    pub perturbed: bool,
+}
+
+/// Greedy episodes of the checkpoint at `path` with `eval`'s seeds, as `plan` says.
+pub fn evaluate_checkpoint(path: &Path, plan: EvaluationPlan) -> Result<Evaluation, EvaluateError> {
+    let EvaluationPlan { episodes, seconds, perturbed } = plan;
     let loaded = load_policy(path, &[])?;
-    let env = evaluation_env(&loaded.config.env, seconds)?;
+    let mut env = evaluation_env(&loaded.config.env, seconds)?;
+    if perturbed {
+        env.randomization = Randomization::EVAL_PERTURBATIONS;
+    }
     let mut speeds = Vec::with_capacity(episodes as usize);
     let mut flips = 0;
     for i in 0..u64::from(episodes) {
@@ -94,6 +115,7 @@ pub fn evaluate_checkpoint(path: &Path, episodes: u32, seconds: f32) -> Result<E
         train_seconds: loaded.meta.progress.train_seconds,
         episodes,
         seconds,
+        perturbed,
         mean_speed: speeds.iter().sum::<f64>() / speeds.len().max(1) as f64,
         min_speed: speeds.iter().copied().fold(f64::INFINITY, f64::min),
         flips,
@@ -105,18 +127,22 @@ pub fn evaluate_checkpoint(path: &Path, episodes: u32, seconds: f32) -> Result<E
 #[derive(Debug)]
 pub struct BestKeeper {
     checkpoints: PathBuf,
-    episodes: u32,
-    seconds: f32,
+    plan: EvaluationPlan,
     best: Option<Evaluation>,
 }
 
 impl BestKeeper {
     /// A keeper for the run whose checkpoints live in `checkpoints`. A best checkpoint already
     /// there (a resumed run) is the one to beat.
-    pub fn new(checkpoints: &Path, episodes: u32, seconds: f32) -> Self {
+    /// A best evaluated with another plan is not comparable: it is replaced by the first
+    /// candidate.
+    pub fn new(checkpoints: &Path, plan: EvaluationPlan) -> Self {
         let record = checkpoints.join(BEST_DIR).join(EVALUATION_FILE);
-        let best = fs::read(&record).ok().and_then(|bytes| serde_json::from_slice(&bytes).ok());
-        Self { checkpoints: checkpoints.to_path_buf(), episodes, seconds, best }
+        let best = fs::read(&record)
+            .ok()
+            .and_then(|bytes| serde_json::from_slice::<Evaluation>(&bytes).ok())
+            .filter(|e| (e.episodes, e.seconds, e.perturbed) == (plan.episodes, plan.seconds, plan.perturbed));
+        Self { checkpoints: checkpoints.to_path_buf(), plan, best }
     }
 
     pub fn best(&self) -> Option<&Evaluation> {
@@ -129,7 +155,7 @@ impl BestKeeper {
     pub fn consider(&mut self, path: &Path) -> Result<(Evaluation, bool), BestError> {
         let candidate = self.checkpoints.join(CANDIDATE_DIR);
         copy_checkpoint(path, &candidate)?;
-        let mut evaluation = evaluate_checkpoint(&candidate, self.episodes, self.seconds)
+        let mut evaluation = evaluate_checkpoint(&candidate, self.plan)
             .map_err(|source| BestError::Evaluate { path: path.to_path_buf(), source })?;
         if let Some(name) = path.file_name() {
             evaluation.checkpoint = name.to_string_lossy().into_owned();
@@ -180,6 +206,7 @@ mod tests {
             train_seconds: 1.0,
             episodes: 5,
             seconds: 20.0,
+            perturbed: false,
             mean_speed,
             min_speed: 0.0,
             flips,

@@ -213,6 +213,8 @@ pub struct LearnerSection {
     pub best_episodes: u32,
     /// Simulated seconds per such episode.
     pub best_seconds: f32,
+    /// Play them under `eval --perturbed`'s physics instead of the nominal one.
+    pub best_perturbed: bool,
     /// Also snapshot the replay buffer in the final checkpoint.
     pub snapshot_replay: bool,
     /// Seconds between status lines.
@@ -239,6 +241,7 @@ impl Default for LearnerSection {
             keep_checkpoints: 3,
             best_episodes: 0,
             best_seconds: 20.0,
+            best_perturbed: false,
             snapshot_replay: true,
             status_every_s: 5.0,
             max_updates: 0,
@@ -449,6 +452,12 @@ impl TrainConfig {
             return Err(invalid("learner.ingest_queue", l.ingest_queue.to_string(), "an integer in 1..=65536"));
         }
         Ok(())
+    }
+
+    /// How the best-checkpoint thread evaluates checkpoints (`learner.best_*`).
+    pub fn best_evaluation(&self) -> crate::best::EvaluationPlan {
+        let l = &self.learner;
+        crate::best::EvaluationPlan { episodes: l.best_episodes, seconds: l.best_seconds, perturbed: l.best_perturbed }
     }
 
     pub fn network_spec(&self) -> NetworkSpec {

@@ -9,7 +9,7 @@ use std::path::{Path, PathBuf};
 use std::sync::mpsc::{SyncSender, TrySendError, sync_channel};
 use std::thread::JoinHandle;
 
-use crawler_run::best::BestKeeper;
+use crawler_run::best::{BestKeeper, EvaluationPlan};
 use tracing::{info, warn};
 
 /// The handle the training loop offers checkpoints to.
@@ -20,12 +20,12 @@ pub(super) struct BestFeed {
 }
 
 impl BestFeed {
-    /// A feed for the checkpoints in `checkpoints`; `episodes` = 0 makes it a no-op.
-    pub fn start(checkpoints: &Path, episodes: u32, seconds: f32) -> std::io::Result<Self> {
-        if episodes == 0 {
+    /// A feed for the checkpoints in `checkpoints`; a plan of 0 episodes makes it a no-op.
+    pub fn start(checkpoints: &Path, plan: EvaluationPlan) -> std::io::Result<Self> {
+        if plan.episodes == 0 {
             return Ok(Self { offers: None, thread: None });
         }
-        let mut keeper = BestKeeper::new(checkpoints, episodes, seconds);
+        let mut keeper = BestKeeper::new(checkpoints, plan);
         let (offers, checkpoints_in) = sync_channel::<PathBuf>(1);
         let thread = std::thread::Builder::new().name("best-checkpoint".into()).spawn(move || {
             for path in checkpoints_in {

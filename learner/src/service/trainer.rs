@@ -155,12 +155,8 @@ impl<'a> Trainer<'a> {
             progress,
             session_start: Instant::now(),
             last_checkpoint: None,
-            best: BestFeed::start(
-                &run_dir.join("checkpoints"),
-                config.learner.best_episodes,
-                config.learner.best_seconds,
-            )
-            .map_err(ServiceError::BestThread)?,
+            best: BestFeed::start(&run_dir.join("checkpoints"), config.best_evaluation())
+                .map_err(ServiceError::BestThread)?,
         })
     }
 

@@ -123,7 +123,14 @@ fn a_run_writes_metrics_that_plot_and_render_turn_into_pictures() {
 #[test]
 fn the_best_checkpoint_by_greedy_evaluation_is_kept_and_eval_reproduces_it() {
     let runs = tempfile::tempdir().unwrap();
-    let args = ["--set", "learner.best_episodes=2", "--set", "learner.best_seconds=1.0"];
+    let args = [
+        "--set",
+        "learner.best_episodes=2",
+        "--set",
+        "learner.best_seconds=1.0",
+        "--set",
+        "learner.best_perturbed=true",
+    ];
     let mut learner = Learner::builder(runs.path(), "best").actors(1).args(&args).start();
     let checkpoints = runs.path().join("best").join("checkpoints");
     let record = checkpoints.join(best::BEST_DIR).join(best::EVALUATION_FILE);
@@ -133,10 +140,11 @@ fn the_best_checkpoint_by_greedy_evaluation_is_kept_and_eval_reproduces_it() {
 
     let kept: best::Evaluation = serde_json::from_slice(&std::fs::read(&record).unwrap()).unwrap();
     assert!(kept.checkpoint.starts_with("step-"), "{kept:?}");
-    assert_eq!((kept.episodes, kept.seconds), (2, 1.0));
-    // `eval` of checkpoints/best replays the same seeds and gets the same numbers.
+    assert_eq!((kept.episodes, kept.seconds, kept.perturbed), (2, 1.0, true));
+    // `eval --perturbed` of checkpoints/best replays the same seeds and physics and gets the
+    // same numbers.
     let best_dir = checkpoints.join(best::BEST_DIR);
-    let output = run("eval", &[best_dir.to_str().unwrap(), "--episodes", "2", "--seconds", "1"]);
+    let output = run("eval", &[best_dir.to_str().unwrap(), "--episodes", "2", "--seconds", "1", "--perturbed"]);
     let report: serde_json::Value = serde_json::from_slice(&output.stdout).unwrap();
     assert_eq!(report["updates"].as_u64().unwrap(), kept.updates);
     assert!((report["speed"]["mean"].as_f64().unwrap() - kept.mean_speed).abs() < 1e-6, "{report} vs {kept:?}");
