@@ -31,6 +31,8 @@ pub const BEST_DIR: &str = "best";
 /// Where a candidate is copied while it is evaluated (never a `step-` name, so checkpoint
 /// pruning and `latest` leave it alone).
 const CANDIDATE_DIR: &str = ".best-candidate";
+/// The replaced best while the new one is renamed into place.
+const PREVIOUS_DIR: &str = ".best-previous";
 /// The evaluation that made a checkpoint the best, inside its directory.
 pub const EVALUATION_FILE: &str = "evaluation.json";
 
@@ -166,11 +168,20 @@ impl BestKeeper {
             let json = serde_json::to_vec_pretty(&evaluation)
                 .map_err(|source| BestError::Json { path: record.clone(), source })?;
             fs::write(&record, json).map_err(io("write", &record))?;
+            // The old best is moved aside, not deleted, until the new one is in place: a crash
+            // in between leaves a best (or its copy) on disk, never none.
             let best = self.checkpoints.join(BEST_DIR);
+            let previous = self.checkpoints.join(PREVIOUS_DIR);
+            if previous.exists() {
+                fs::remove_dir_all(&previous).map_err(io("remove", &previous))?;
+            }
             if best.exists() {
-                fs::remove_dir_all(&best).map_err(io("remove", &best))?;
+                fs::rename(&best, &previous).map_err(io("rename", &best))?;
             }
             fs::rename(&candidate, &best).map_err(io("rename", &candidate))?;
+            if previous.exists() {
+                fs::remove_dir_all(&previous).map_err(io("remove", &previous))?;
+            }
             self.best = Some(evaluation.clone());
         } else {
             fs::remove_dir_all(&candidate).map_err(io("remove", &candidate))?;
