@@ -20,12 +20,8 @@ use serde::{Deserialize, Serialize};
 
 use crawler_actor::env::Randomization;
 
-use crate::evaluate::{EvaluateError, evaluation_env, greedy_episode, load_policy};
+use crate::evaluate::{EVAL_SEED, EvaluateError, STUCK_SPEED, evaluation_env, greedy_episode, load_policy};
 
-/// `eval`'s first seed: episode i of an evaluation uses `EVAL_SEED + i`.
-pub const EVAL_SEED: u64 = 1_000_000;
-/// An episode slower than this (m/s) is stuck (`eval`'s definition).
-pub const STUCK_SPEED: f32 = 0.05;
 /// The directory under `checkpoints/` that holds the best checkpoint.
 pub const BEST_DIR: &str = "best";
 /// Where a candidate is copied while it is evaluated (never a `step-` name, so checkpoint

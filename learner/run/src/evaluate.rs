@@ -11,6 +11,12 @@ use crawler_actor::policy::{MlpPolicy, PolicyError};
 use crate::checkpoint::{self, CheckpointError, CheckpointMeta};
 use crate::config::{ConfigError, TrainConfig};
 
+/// The first seed of an evaluation: episode i uses `EVAL_SEED + i` (`eval`'s default, and
+/// what the best-checkpoint keeper uses, so `eval` reproduces its numbers).
+pub const EVAL_SEED: u64 = 1_000_000;
+/// An episode slower than this (m/s) is stuck: the crawler barely moved.
+pub const STUCK_SPEED: f32 = 0.05;
+
 #[derive(Debug, thiserror::Error)]
 pub enum EvaluateError {
     #[error(transparent)]

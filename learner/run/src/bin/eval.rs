@@ -9,12 +9,9 @@
 use std::path::PathBuf;
 
 use clap::Parser;
-use crawler_run::evaluate::{evaluation_env, greedy_episode, load_policy};
+use crawler_run::evaluate::{EVAL_SEED, STUCK_SPEED, evaluation_env, greedy_episode, load_policy};
 use serde::Serialize;
 use tracing::info;
-
-/// An episode slower than this (m/s) is stuck: the crawler barely moved.
-const STUCK_SPEED: f32 = 0.05;
 
 #[derive(Debug, Parser)]
 #[command(version, about = "Evaluate a checkpoint greedily: speed in m/s, distance, return, flips")]
@@ -27,7 +24,7 @@ struct Args {
     /// Simulated seconds per episode.
     #[arg(long, default_value_t = 20.0)]
     seconds: f32,
-    #[arg(long, default_value_t = 1_000_000)]
+    #[arg(long, default_value_t = EVAL_SEED)]
     seed: u64,
     /// Evaluate under perturbed physics, drawn per episode: ±30 % friction, ±20 % masses,
     /// motors at 80–100 %, joint limits from nearly rigid (0.01 s) to soft (0.1 s), 0–4 ms of
