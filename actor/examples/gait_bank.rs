@@ -14,7 +14,8 @@
 use anyhow::Context;
 use crawler_actor::env::gait::SquareWaveGait;
 use crawler_actor::env::model::{JOINT1_RANGE, JOINT2_RANGE};
-use crawler_actor::env::{Crawler, EnvConfig};
+use crawler_actor::env::observation::BASE_ANGVEL;
+use crawler_actor::env::{Crawler, EnvConfig, OBS_DIM};
 
 const SECONDS: f32 = 20.0;
 /// Joint angles of the start poses, in degrees: the middle and two corners of the study's
@@ -61,7 +62,8 @@ fn main() -> anyhow::Result<()> {
     let steps = (SECONDS / config.dt).round() as u32;
     let mut rows = Vec::new();
     for gait in bank() {
-        let (mut distance, mut flips, mut overshoot) = (0.0, 0, 0.0f32);
+        let (mut distance, mut flips, mut overshoot, mut rocking) = (0.0, 0, 0.0f32, 0.0f64);
+        let mut observation = [0.0; OBS_DIM];
         for start in starts {
             let mut crawler = Crawler::new(config.clone(), 1);
             crawler.reset_to(start);
@@ -70,6 +72,9 @@ fn main() -> anyhow::Result<()> {
                 let [q1, q2] = crawler.joint_angles();
                 let beyond = [JOINT1_RANGE[0] - q1, q1 - JOINT1_RANGE[1], JOINT2_RANGE[0] - q2, q2 - JOINT2_RANGE[1]];
                 overshoot = beyond.into_iter().fold(overshoot, f32::max);
+                crawler.observe(&mut observation);
+                let [wx, wy, _] = [0, 1, 2].map(|axis| f64::from(observation[BASE_ANGVEL.start + axis]));
+                rocking += wx * wx + wy * wy;
             }
             // The env counts turn-overs (its base's top starting to face down) itself.
             flips += crawler.episode_summary(None).flips;
@@ -83,6 +88,9 @@ fn main() -> anyhow::Result<()> {
             "speed": speed,
             "flips": flips,
             "overshoot_deg": overshoot.to_degrees(),
+            // Mean ωx² + ωy² of the base about its horizontal axes, (rad/s)²: what
+            // `env.tilt_rate_penalty` charges per second and unit weight.
+            "rocking": rocking / f64::from(steps * starts.len() as u32),
         });
         rows.push((speed, row));
     }

@@ -567,6 +567,7 @@ impl EpisodeStatsSource<'_> {
             episode_return: summary.reward.total(),
             return_position: summary.reward.position,
             return_upright: summary.reward.upright,
+            return_tilt_rate: summary.reward.tilt_rate,
             distance: summary.distance,
             duration: summary.duration,
             speed: summary.speed,

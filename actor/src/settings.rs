@@ -152,6 +152,7 @@ impl From<&EnvConfig> for proto::EnvSettings {
             start_joint2_deg: env.start_joint2_deg.to_vec(),
             joint_limit_timeconst: env.joint_limit_timeconst,
             max_tilt_deg: env.max_tilt_deg,
+            tilt_rate_penalty: env.tilt_rate_penalty,
             randomization: env.randomization.is_active().then(|| {
                 let r = &env.randomization;
                 proto::RandomizationSettings {
@@ -218,6 +219,7 @@ impl TryFrom<&proto::EnvSettings> for EnvConfig {
             start_joint2_deg: pair(&env.start_joint2_deg, "env.start_joint2_deg")?,
             joint_limit_timeconst: env.joint_limit_timeconst,
             max_tilt_deg: env.max_tilt_deg,
+            tilt_rate_penalty: env.tilt_rate_penalty,
             randomization: env.randomization.as_ref().map(Randomization::try_from).transpose()?.unwrap_or_default(),
         };
         config.validate()?;
@@ -287,6 +289,7 @@ mod tests {
         settings.env.direction = Direction::Backward;
         settings.env.action_repeat = 10;
         settings.env.max_tilt_deg = 60.0;
+        settings.env.tilt_rate_penalty = 0.02;
         settings.env.joint_limit_timeconst = 0.02;
         settings.env.randomization.latency_steps = [0, 2];
         settings.exploration = Exploration::Decay { start: 1.0, factor: 0.99, every: 100, min: 0.05 };

@@ -232,6 +232,40 @@ fn a_fall_past_max_tilt_terminates_the_episode_before_the_base_turns_over() {
 }
 
 #[test]
+fn the_rocking_penalty_charges_a_rocking_gait_and_nothing_else() {
+    // The tumbling gait rocks the base hard; the penalty's part of the reward is then
+    // negative, grows with the weight, and the other parts are those of the unpenalised run
+    // (the penalty changes the reward, never the physics).
+    let run = |tilt_rate_penalty: f32| {
+        let mut crawler = Crawler::new(EnvConfig { tilt_rate_penalty, ..endless() }, 0);
+        let dt = crawler.config().dt;
+        let mut total = 0.0;
+        for step in 0..1_000_u32 {
+            let outcome = crawler.step_torques(SquareWaveGait::TUMBLES_IN_MUJOCO.torques(step as f32 * dt));
+            let reward = outcome.reward;
+            assert!((reward.total() - (reward.position + reward.upright + reward.tilt_rate)).abs() < 1e-6);
+            assert!((-0.5..=0.0).contains(&reward.tilt_rate), "{reward:?}");
+            total += reward.total();
+        }
+        (crawler.episode_summary(None), total)
+    };
+    let (plain, plain_total) = run(0.0);
+    let (light, _) = run(0.01);
+    let (heavy, heavy_total) = run(0.1);
+    assert_eq!(plain.reward.tilt_rate, 0.0, "no penalty by default: the study's reward");
+    assert!(
+        light.reward.tilt_rate < 0.0 && heavy.reward.tilt_rate < 2.0 * light.reward.tilt_rate,
+        "{light:?} {heavy:?}"
+    );
+    assert_eq!((heavy.reward.position, heavy.reward.upright), (plain.reward.position, plain.reward.upright));
+    assert!(heavy_total < plain_total);
+    // A still base costs nothing.
+    let mut still = Crawler::new(EnvConfig { tilt_rate_penalty: 1.0, ..endless() }, 0);
+    let idle: f32 = (0..500).map(|_| still.step_torques([0.0, 0.0]).reward.tilt_rate).sum();
+    assert!(idle > -1e-3, "{idle}");
+}
+
+#[test]
 fn idle_episodes_terminate_and_long_ones_truncate() {
     let config = EnvConfig::default();
     let mut crawler = Crawler::new(config.clone(), 0);
@@ -288,6 +322,10 @@ fn bad_settings_are_rejected_by_name() {
     assert!(message.contains("env.action_levels") && message.contains("2..=15"), "{message}");
     let bad = EnvConfig { dt: f32::NAN, ..EnvConfig::default() };
     assert!(bad.validate().unwrap_err().to_string().contains("env.dt"));
+    for penalty in [-0.1, f32::NAN, 11.0] {
+        let bad = EnvConfig { tilt_rate_penalty: penalty, ..EnvConfig::default() };
+        assert!(bad.validate().unwrap_err().to_string().contains("env.tilt_rate_penalty"), "{penalty}");
+    }
     assert!(EnvConfig::default().validate().is_ok());
 }
 

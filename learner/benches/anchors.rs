@@ -17,6 +17,7 @@ use crawler_actor::policy::{MlpPolicy, NetworkSpec};
 use crawler_learner::algo::dqn::{Batch, Dqn, DqnConfig, LossKind};
 use crawler_learner::checkpoint::encode_weights;
 use serde_json::json;
+use tch::nn::{self, Module};
 use tch::{Kind, Tensor};
 
 /// The rows, in the order the script prints them.
@@ -81,24 +82,64 @@ fn physics() -> serde_json::Value {
     })
 }
 
+/// The network as a tch user writes it: `nn::seq` of `nn::linear`, `nn::layer_norm` and ReLU,
+/// in PyTorch's layout, holding `weights` (`nn.Sequential` order and names). The inference
+/// anchor, so it stays independent of how the learner lays out its own network.
+fn tch_sequential(spec: &NetworkSpec, weights: &[f32]) -> (nn::VarStore, nn::Sequential) {
+    let store = nn::VarStore::new(tch::Device::Cpu);
+    let root = store.root();
+    let mut sequential = nn::seq();
+    let mut inputs = spec.obs_dim as i64;
+    for (i, &width) in spec.hidden.iter().enumerate() {
+        let index = spec.stride() * i;
+        sequential = sequential.add(nn::linear(&root / index, inputs, width as i64, Default::default()));
+        if spec.layer_norm {
+            sequential = sequential.add(nn::layer_norm(&root / (index + 1), vec![width as i64], Default::default()));
+        }
+        sequential = sequential.add_fn(Tensor::relu);
+        inputs = width as i64;
+    }
+    let last = spec.stride() * spec.hidden.len();
+    sequential = sequential.add(nn::linear(&root / last, inputs, spec.num_actions as i64, Default::default()));
+    let variables = store.variables();
+    let mut offset = 0;
+    tch::no_grad(|| {
+        for info in spec.params() {
+            let shape: Vec<i64> = info.shape.iter().map(|&d| d as i64).collect();
+            let values = Tensor::from_slice(&weights[offset..offset + info.numel()]).view(shape.as_slice());
+            offset += info.numel();
+            let mut variable = variables[&info.name].shallow_clone();
+            variable.copy_(&values);
+        }
+    });
+    (store, sequential)
+}
+
 fn inference(batch: usize) -> serde_json::Value {
     tch::manual_seed(0);
     let spec = NetworkSpec::study();
     let dqn = Dqn::new(spec.clone(), DqnConfig::default());
     let policy = MlpPolicy::from_safetensors(&encode_weights(&dqn.online), &spec).unwrap_or_else(|e| panic!("{e}"));
+    let (_store, sequential) = tch_sequential(&spec, &dqn.online.flat_values());
     let inputs: Vec<f32> = (0..batch * OBS_DIM).map(|i| ((i * 7919) % 13) as f32 * 0.1 - 0.6).collect();
     let tensor = Tensor::from_slice(&inputs).view([batch as i64, OBS_DIM as i64]);
+    // Both compute the same function: a bench that timed different work would mislead.
+    let ours = policy.q_values(&inputs).unwrap_or_else(|e| panic!("{e}"));
+    let theirs: Vec<f32> =
+        Vec::try_from(tch::no_grad(|| sequential.forward(&tensor)).flatten(0, -1)).unwrap_or_else(|e| panic!("{e}"));
+    let max_diff = ours.iter().zip(&theirs).map(|(a, b)| (a - b).abs()).fold(0.0f32, f32::max);
+    assert!(ours.len() == theirs.len() && max_diff < 1e-4, "the anchor computes another function: {max_diff}");
     let rust = rate(|| {
         let _ = std::hint::black_box(policy.q_values(&inputs));
     });
     let torch = rate(|| {
-        let _ = std::hint::black_box(dqn.q_values(&tensor));
+        let _ = std::hint::black_box(tch::no_grad(|| sequential.forward(&tensor)));
     });
     json!({
         "row": format!("inference-b{batch}"),
         "project": 1e6 / rust,
         "anchor": 1e6 / torch,
-        "anchor_name": "tch 0.26 (libtorch 2.13)",
+        "anchor_name": "tch 0.26 nn::seq (libtorch 2.13)",
         "unit": "µs",
         "what": "study network 40-512-256-128-25, plain Rust",
     })

@@ -37,12 +37,15 @@ pub fn save(
         None => Ok(()),
     };
     let (online, target) = (dqn.online.flat_values(), dqn.target.flat_values());
+    // Adam's moments lie like the parameter buffer; checkpoints hold PyTorch's layout.
+    let exp_avg = dqn.online.to_torch_order(&dqn.optimizer.exp_avg);
+    let exp_avg_sq = dqn.online.to_torch_order(&dqn.optimizer.exp_avg_sq);
     let snapshot = Snapshot {
         network: &dqn.network,
         online: &online,
         target: &target,
-        exp_avg: &dqn.optimizer.exp_avg,
-        exp_avg_sq: &dqn.optimizer.exp_avg_sq,
+        exp_avg: &exp_avg,
+        exp_avg_sq: &exp_avg_sq,
         adam_step: dqn.optimizer.step,
         replay: replay.is_some().then_some(&write_replay as FileWriter<'_>),
     };
@@ -85,8 +88,9 @@ impl Dqn {
     /// match this learner's.
     pub fn restore(&mut self, checkpoint: &Checkpoint) -> Result<(), CheckpointError> {
         self.initialise_from(checkpoint)?;
-        self.optimizer.exp_avg.clone_from(&checkpoint.exp_avg);
-        self.optimizer.exp_avg_sq.clone_from(&checkpoint.exp_avg_sq);
+        // The loader checked both moments' lengths against the network.
+        self.optimizer.exp_avg = self.online.from_torch_order(&checkpoint.exp_avg);
+        self.optimizer.exp_avg_sq = self.online.from_torch_order(&checkpoint.exp_avg_sq);
         self.optimizer.step = checkpoint.meta.adam_step;
         self.updates = checkpoint.meta.progress.updates;
         Ok(())

@@ -22,7 +22,9 @@ pub use validate::{ProtoError, SequenceTracker, TransitionLimits};
 ///    physics, is refused.
 /// 4: the env settings carry the tilt that ends an episode (`EnvSettings.max_tilt_deg`); an
 ///    older actor would read it as absent and never end an episode on a fall.
-pub const PROTOCOL_VERSION: u32 = 4;
+/// 5: the env settings carry the rocking penalty (`EnvSettings.tilt_rate_penalty`) and episode
+///    stats its part of the return; an older actor would train on another reward.
+pub const PROTOCOL_VERSION: u32 = 5;
 
 /// Largest encoded message a node accepts, in bytes. The largest legal messages: a batch of
 /// [`MAX_BATCH_TRANSITIONS`] transitions of 40 values (about 1.4 MB) and the weights of a

@@ -161,6 +161,9 @@ pub struct EnvSettings {
     /// Tilt from upright, in degrees, past which an episode terminates; 180: never.
     #[prost(float, tag = "15")]
     pub max_tilt_deg: f32,
+    /// Weight of the penalty on the base's rocking; 0: none (the study's reward).
+    #[prost(float, tag = "16")]
+    pub tilt_rate_penalty: f32,
 }
 
 /// Ranges drawn once per episode (`crawler_actor::env::Randomization` documents each); every
@@ -255,6 +258,9 @@ pub struct EpisodeStats {
     pub return_position: f32,
     #[prost(float, tag = "7")]
     pub return_upright: f32,
+    /// The rocking penalty's part of the return (≤ 0; 0 where the env has none).
+    #[prost(float, tag = "16")]
+    pub return_tilt_rate: f32,
     /// Metres in the rewarded direction.
     #[prost(float, tag = "8")]
     pub distance: f32,

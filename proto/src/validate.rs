@@ -299,6 +299,7 @@ pub fn episode_stats(bytes: &[u8], run_id: &str) -> Result<EpisodeStats, ProtoEr
         stats.episode_return,
         stats.return_position,
         stats.return_upright,
+        stats.return_tilt_rate,
         stats.distance,
         stats.duration,
         stats.speed,
@@ -306,7 +307,7 @@ pub fn episode_stats(bytes: &[u8], run_id: &str) -> Result<EpisodeStats, ProtoEr
     finite("episode stats", &values)?;
     probability("epsilon", stats.epsilon)?;
     use report_limits::*;
-    let returns = [stats.episode_return, stats.return_position, stats.return_upright];
+    let returns = [stats.episode_return, stats.return_position, stats.return_upright, stats.return_tilt_rate];
     within("episode returns", &returns, -MAX_ABS_RETURN, MAX_ABS_RETURN)?;
     within("distance", &[stats.distance], -MAX_ABS_DISTANCE, MAX_ABS_DISTANCE)?;
     within("duration", &[stats.duration], 0.0, MAX_DURATION)?;

@@ -260,22 +260,30 @@ def gaits(args) -> None:
     for entry in bank:
         gait = entry["gait"]
         steps = round(entry["seconds"] / crawler.dt)
-        distance, flips, overshoot = 0.0, 0, 0.0
+        distance, flips, overshoot, rocking = 0.0, 0, 0.0, 0.0
         for q1, q2 in entry["starts"]:
             crawler.reset(q1, q2)
             for s in range(steps):
                 crawler.step(square_wave(gait, s * crawler.dt))
+                # The free joint's angular velocity is in the base's own frame.
+                rocking += float(crawler.data.qvel[3] ** 2 + crawler.data.qvel[4] ** 2)
             distance += crawler.distance(1.0)
             flips += crawler.flips
             overshoot = max(overshoot, crawler.overshoot / DEG)
         rows.append(
             {
                 "gait": gait,
-                "rapier": {"speed": entry["speed"], "flips": entry["flips"], "overshoot_deg": entry["overshoot_deg"]},
+                "rapier": {
+                    "speed": entry["speed"],
+                    "flips": entry["flips"],
+                    "overshoot_deg": entry["overshoot_deg"],
+                    "rocking": entry.get("rocking", float("nan")),
+                },
                 "mujoco": {
                     "speed": distance / (entry["seconds"] * len(entry["starts"])),
                     "flips": flips,
                     "overshoot_deg": overshoot,
+                    "rocking": rocking / (steps * len(entry["starts"])),
                 },
             }
         )
@@ -289,6 +297,12 @@ def gaits(args) -> None:
     flips_theirs = sum(r["mujoco"]["flips"] > 0 for r in rows)
     flip_agreement = sum((r["rapier"]["flips"] > 0) == (r["mujoco"]["flips"] > 0) for r in rows)
     overshoot = {engine: float(np.median([r[engine]["overshoot_deg"] for r in rows])) for engine in ("rapier", "mujoco")}
+    # How hard the base rocks (mean ωx² + ωy², its own frame) on the gaits that stay upright
+    # in both engines: a tumble's spin would swamp it. MuJoCo over this engine, median.
+    upright = [r for r in rows if r["rapier"]["flips"] == 0 and r["mujoco"]["flips"] == 0]
+    rocking_ratio = (
+        float(np.median([r["mujoco"]["rocking"] / r["rapier"]["rocking"] for r in upright])) if upright else float("nan")
+    )
     summary = {
         "gaits": len(rows),
         "spearman": correlation,
@@ -296,12 +310,15 @@ def gaits(args) -> None:
         "gaits_flipping": {"rapier": flips_ours, "mujoco": flips_theirs},
         "flip_agreement": flip_agreement,
         "median_overshoot_deg": overshoot,
+        "upright_in_both": len(upright),
+        "rocking_mujoco_over_rapier": rocking_ratio,
     }
     print(json.dumps({"summary": summary}))
     print(
         f"{len(rows)} gaits: Spearman {correlation:.3f}, mean |Δspeed| {mad:.3f} m/s, gaits that flip: "
         f"rapier {flips_ours}, MuJoCo {flips_theirs}, agreeing on flips {flip_agreement}/{len(rows)}, "
-        f"median joint-limit overshoot: rapier {overshoot['rapier']:.1f}°, MuJoCo {overshoot['mujoco']:.1f}°",
+        f"median joint-limit overshoot: rapier {overshoot['rapier']:.1f}°, MuJoCo {overshoot['mujoco']:.1f}°, "
+        f"base rocking MuJoCo/rapier {rocking_ratio:.2f} (median over the {len(upright)} gaits upright in both)",
         file=sys.stderr,
     )
 

@@ -69,6 +69,12 @@ pub struct EnvConfig {
     /// future reward by tipping over and learns a margin from it; a gait that only stays up
     /// in one simulator's physics is what fails to transfer (EXPERIMENTS.md, "Fidelity").
     pub max_tilt_deg: f32,
+    /// Weight w of a penalty on the base's rocking (0: the study's reward, none). Each physics
+    /// step adds −w·dt·(ωx² + ωy²), ω being the base's angular velocity about its own two
+    /// horizontal axes in rad/s (legged_gym's `ang_vel_xy` term), at most 0.5 in magnitude, so
+    /// a second of rocking at ω costs w·ω². Gaits that jolt the base about its edges are the
+    /// ones that crawl here and tumble on the study's model (EXPERIMENTS.md, "Fidelity").
+    pub tilt_rate_penalty: f32,
     /// Per-episode physics randomisation (off by default).
     pub randomization: Randomization,
 }
@@ -90,6 +96,7 @@ impl Default for EnvConfig {
             start_joint2_deg: [-22.5, 22.5],
             joint_limit_timeconst: 0.05,
             max_tilt_deg: 180.0,
+            tilt_rate_penalty: 0.0,
             randomization: Randomization::default(),
         }
     }
@@ -152,6 +159,13 @@ impl EnvConfig {
             "max_tilt_deg",
             tilt,
             "an angle in (0, 180] degrees; 180 never terminates",
+        )?;
+        let penalty = self.tilt_rate_penalty;
+        check(
+            penalty.is_finite() && (0.0..=10.0).contains(&penalty),
+            "tilt_rate_penalty",
+            penalty,
+            "a weight in [0, 10] (0: no penalty, the study's reward)",
         )?;
         self.randomization.validate()?;
         for (key, range) in [("start_joint1_deg", self.start_joint1_deg), ("start_joint2_deg", self.start_joint2_deg)] {

@@ -23,11 +23,14 @@ pub struct Reward {
     pub position: f32,
     /// `0.5·(1 − |pitch|/π)`, pitch being the base's rotation about y (xyz Euler angles).
     pub upright: f32,
+    /// `−min(w·dt·(ωx² + ωy²), 0.5)` with w the env's `tilt_rate_penalty` (0 by default): the
+    /// base's rocking about its horizontal axes.
+    pub tilt_rate: f32,
 }
 
 impl Reward {
     pub fn total(&self) -> f32 {
-        self.position + self.upright
+        self.position + self.upright + self.tilt_rate
     }
 }
 
@@ -212,9 +215,9 @@ impl Crawler {
             let x_before = self.base_x();
             self.physics_step(torques);
             let dx = direction * (self.base_x() - x_before);
-            let step_reward = Reward { position: position_reward(dx), upright: upright_reward(self.base_rotation()) };
-            reward.position += step_reward.position;
-            reward.upright += step_reward.upright;
+            reward.position += position_reward(dx);
+            reward.upright += upright_reward(self.base_rotation());
+            reward.tilt_rate += self.tilt_rate_reward();
             if self.track_tilt() {
                 outcome.terminated = true;
                 break;
@@ -237,6 +240,7 @@ impl Crawler {
         self.draw_observation_noise();
         self.episode.reward.position += reward.position;
         self.episode.reward.upright += reward.upright;
+        self.episode.reward.tilt_rate += reward.tilt_rate;
         outcome.reward = reward;
         outcome
     }
@@ -311,6 +315,17 @@ impl Crawler {
                 None => joint.data.motor_axes.remove(JointAxesMask::ANG_X),
             }
         }
+    }
+
+    /// This physics step's penalty on the base's rocking (see [`Reward::tilt_rate`]).
+    fn tilt_rate_reward(&self) -> f32 {
+        let weight = self.config.tilt_rate_penalty;
+        if weight == 0.0 {
+            return 0.0;
+        }
+        let base = &self.world.bodies[self.handles.base];
+        let local = base.rotation().inverse() * base.angvel();
+        -(weight * self.config.dt * (local.x * local.x + local.y * local.y)).min(0.5)
     }
 
     /// Counts a flip when the base turns upside down, and returns whether it tilts further

@@ -9,5 +9,5 @@ mod spec;
 pub use spec::ParamInfo;
 
 pub use exploration::{EpsilonDecay, apex_epsilon};
-pub use mlp::{MlpPolicy, PolicyError, argmax, q_values_of_params};
+pub use mlp::{MlpPolicy, PolicyError, WeightLayout, argmax, q_values_of_params, transpose};
 pub use spec::{NetworkSpec, SpecError};

@@ -64,8 +64,9 @@ impl NetworkSpec {
         Self { obs_dim: 40, hidden: vec![512, 256, 128], num_actions: 25, layer_norm: true }
     }
 
-    /// Module index of hidden layer `i`'s Linear in the `nn.Sequential`.
-    fn stride(&self) -> usize {
+    /// Modules per hidden layer in the `nn.Sequential` (Linear, LayerNorm where present,
+    /// ReLU): hidden layer `i`'s Linear is module `stride · i`.
+    pub fn stride(&self) -> usize {
         if self.layer_norm { 3 } else { 2 }
     }
 

@@ -5,7 +5,7 @@ pub use crawler_run::config::{DqnConfig, LossKind, TargetUpdate};
 use tch::{Kind, Reduction, Tensor};
 
 use super::adam::{AdamConfig, FlatAdam};
-use super::network::QNetwork;
+use super::network::{BUFFER_LAYOUT, QNetwork};
 use super::tensor_memory;
 
 /// One sampled minibatch, already as tensors. `discount` is γⁿ for an n-step transition that
@@ -71,7 +71,7 @@ impl Dqn {
     /// and some thirty tensor ops become two calls. `learner/tests/it/network.rs` pins them
     /// to libtorch's forward pass.
     pub fn td_targets(&self, batch: &Batch) -> Tensor {
-        let plain = |t: &Tensor| t.detach().to_kind(Kind::Float).contiguous();
+        let plain = tensor_memory::plain_f32;
         let (next, returns, discounts) =
             (plain(&batch.next_observations), plain(&batch.returns), plain(&batch.discounts));
         // SAFETY: every tensor read here is either this batch's own (copies made just above,
@@ -89,7 +89,7 @@ impl Dqn {
             )
         };
         let forward = |params: &[f32]| {
-            q_values_of_params(&self.network, params, next)
+            q_values_of_params(&self.network, params, BUFFER_LAYOUT, next)
                 .expect("replay batches hold observations of the network's size and the buffers fit its spec")
         };
         let actions = self.network.num_actions;
@@ -111,13 +111,15 @@ impl Dqn {
     pub fn update(&mut self, batch: &Batch) -> UpdateStats {
         let targets = self.td_targets(batch);
         let q = self.online.forward(&batch.observations).gather(1, &batch.actions.unsqueeze(1), false).squeeze_dim(1);
-        let elementwise = match self.config.loss {
-            LossKind::Mse => q.mse_loss(&targets, Reduction::None),
-            LossKind::Huber => q.huber_loss(&targets, Reduction::None, 1.0),
+        // Per sample only where importance weights scale the samples; else reduced in the op.
+        let reduction = if batch.weights.is_some() { Reduction::None } else { Reduction::Mean };
+        let loss = match self.config.loss {
+            LossKind::Mse => q.mse_loss(&targets, reduction),
+            LossKind::Huber => q.huber_loss(&targets, reduction, 1.0),
         };
         let loss = match &batch.weights {
-            Some(w) => (elementwise * w).mean(Kind::Float),
-            None => elementwise.mean(Kind::Float),
+            Some(w) => (loss * w).mean(Kind::Float),
+            None => loss,
         };
         let grad = self.online.gradient(&loss);
         let grad_norm = grad.l2_norm();
@@ -147,7 +149,7 @@ impl Dqn {
             }
             TargetUpdate::Polyak { tau } => self.target.polyak_from(&self.online, tau),
         }
-        let (mean_q, td_errors) = td_summary(&q.detach().contiguous(), &targets.contiguous());
+        let (mean_q, td_errors) = td_summary(&tensor_memory::plain_f32(&q), &tensor_memory::plain_f32(&targets));
         UpdateStats { applied: true, loss: loss_value, mean_q, td_errors, grad_norm }
     }
 

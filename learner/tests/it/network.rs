@@ -59,10 +59,12 @@ fn flat_adam_matches_libtorch_adam() {
     let spec = small();
     tch::manual_seed(7);
     let mut ours = QNetwork::new(&spec, true);
-    // The reference: libtorch's Adam over the same parameters, one tensor each.
+    // The reference: libtorch's Adam over the same parameters, one tensor each, in PyTorch's
+    // layout (ours keeps each weight transposed).
     let vs = nn::VarStore::new(tch::Device::Cpu);
     for (i, p) in ours.params().iter().enumerate() {
-        let _ = vs.root().var_copy(&format!("p{i}"), p);
+        let p = if p.dim() == 2 { p.t_copy() } else { p.shallow_clone() };
+        let _ = vs.root().var_copy(&format!("p{i}"), &p);
     }
     let reference_params = vs.trainable_variables();
     let config = AdamConfig { lr: 1e-3, ..AdamConfig::default() };
@@ -78,7 +80,7 @@ fn flat_adam_matches_libtorch_adam() {
         torch_adam.backward_step(&reference_loss);
         let reference_flat =
             Tensor::cat(&reference_params.iter().map(|p| p.detach().view([-1])).collect::<Vec<_>>(), 0);
-        let diff = (ours.flat() - reference_flat).abs().max().double_value(&[]);
+        let diff = (Tensor::from_slice(&ours.flat_values()) - reference_flat).abs().max().double_value(&[]);
         assert!(diff < 1e-6, "step {step}: parameters differ by {diff}");
     }
 }

@@ -45,6 +45,7 @@ struct Episode {
     episode_return: f32,
     return_position: f32,
     return_upright: f32,
+    return_tilt_rate: f32,
     flips: u32,
 }
 
@@ -83,6 +84,7 @@ fn main() -> anyhow::Result<()> {
             episode_return: summary.reward.total(),
             return_position: summary.reward.position,
             return_upright: summary.reward.upright,
+            return_tilt_rate: summary.reward.tilt_rate,
             flips: summary.flips,
         });
     }
