@@ -17,6 +17,12 @@ Run through scripts/mujoco-check, which installs the pinned MuJoCo into a cached
                      start poses, mean speed and flips in this project's env, as JSON lines
                      on stdin) run in MuJoCo: each gait's speed and flips in both engines,
                      their rank correlation and mean absolute difference.
+  replay             sim-to-sim state replay: a square-wave gait is run in MuJoCo, and from
+                     every --every'th state of that trajectory this project's env
+                     (actor/examples/state_replay.rs) is set to the same qpos/qvel and plays
+                     the same torques for --horizon steps. Prints, per horizon, how far the
+                     two engines drift apart (base tilt, joint angles, rates), and what this
+                     engine does from the states where MuJoCo's base is about to tip over.
 
 No torch: checkpoints are read with safetensors and run by a numpy MLP.
 """
@@ -24,6 +30,7 @@ No torch: checkpoints are read with safetensors and run by a numpy MLP.
 from __future__ import annotations
 
 import argparse
+import subprocess
 import json
 import math
 import sys
@@ -323,6 +330,165 @@ def gaits(args) -> None:
     )
 
 
+def tilt_deg(quaternion) -> float:
+    """Angle between the base's up axis and the world's, in degrees."""
+    w, x, y, z = quaternion
+    up_z = 1.0 - 2.0 * (x * x + y * y)
+    return math.degrees(math.acos(max(-1.0, min(1.0, up_z))))
+
+
+def pitch_deg(quaternion) -> float:
+    """The base's rotation about y (xyz Euler angles), in degrees: the upright reward's pitch."""
+    w, x, y, z = quaternion
+    return math.degrees(math.asin(max(-1.0, min(1.0, 2.0 * (w * y - x * z)))))
+
+
+def contact_phase(crawler: Crawler) -> str:
+    """What the crawler in MuJoCo is doing now: a joint past its limit, else which of its
+    parts touch the floor."""
+    q1, q2 = crawler.data.qpos[7], crawler.data.qpos[8]
+    if not (JOINT1_RANGE[0] <= q1 <= JOINT1_RANGE[1] and JOINT2_RANGE[0] <= q2 <= JOINT2_RANGE[1]):
+        return "past a limit"
+    model, data = crawler.model, crawler.data
+    floor = model.geom("floor").id
+    touching = set()
+    for contact in data.contact[: data.ncon]:
+        if floor in (contact.geom1, contact.geom2):
+            other = contact.geom2 if contact.geom1 == floor else contact.geom1
+            touching.add(model.geom(other).name)
+    names = {"base_geom": "base", "link1_geom": "link 1", "link2_geom": "link 2", "link2_termination": "tip"}
+    down = [label for geom, label in names.items() if geom in touching]
+    return " + ".join(down) + " on the floor" if down else "airborne"
+
+
+def replay(args) -> None:
+    high = [args.gait[1], args.gait[2]]
+    low = [args.gait[3], args.gait[4]]
+    gait = {"period": args.gait[0], "high": high, "low": low, "phase_lag": args.gait[5]}
+    crawler = Crawler()
+    steps = round(args.seconds / crawler.dt)
+    horizon = args.horizon
+    if args.checkpoint:
+        # A policy's own trajectory on the study's model: its greedy torques, held for its
+        # action repeat, are what this engine then plays from each state.
+        _, meta, policy = load_policy(Path(args.checkpoint))
+        env = meta["config"].get("env", {})
+        levels, max_torque = int(env.get("action_levels", 5)), float(env.get("max_torque", 1.0))
+        repeat = int(env.get("action_repeat", 1))
+        torque_of = lambda level: -max_torque + 2.0 * max_torque * level / max(levels - 1, 1)  # noqa: E731
+        gait = {"checkpoint": args.checkpoint, "action_repeat": repeat}
+    qpos, qvel, torques, phases = [], [], [], []
+    crawler.reset(args.start[0] * DEG, args.start[1] * DEG)
+    crawler.data.qpos[2] += args.lift
+    mujoco.mj_forward(crawler.model, crawler.data)
+    torque = np.zeros(2)
+    for s in range(steps + horizon):
+        qpos.append(crawler.data.qpos.copy())
+        qvel.append(crawler.data.qvel.copy())
+        phases.append(contact_phase(crawler))
+        if not args.checkpoint:
+            torque = square_wave(gait, s * crawler.dt)
+        elif s % repeat == 0:
+            action = int(np.argmax(policy(crawler.observe(torque))))
+            torque = np.array([torque_of(action // levels), torque_of(action % levels)])
+        torques.append(torque)
+        crawler.step(torque)
+    qpos.append(crawler.data.qpos.copy())
+    qvel.append(crawler.data.qvel.copy())
+    starts = list(range(0, steps, args.every))
+    queries = "".join(
+        json.dumps(
+            {
+                "qpos": [float(v) for v in qpos[s]],
+                "qvel": [float(v) for v in qvel[s]],
+                "torques": [[float(t) for t in pair] for pair in torques[s : s + horizon]],
+            }
+        )
+        + "\n"
+        for s in starts
+    )
+    result = subprocess.run([args.rapier, *args.overrides], input=queries, capture_output=True, text=True)
+    if result.returncode != 0:
+        sys.exit(f"error: {args.rapier} failed ({result.returncode}): {result.stderr.strip()}")
+    replies = [json.loads(line)["states"] for line in result.stdout.splitlines() if line.strip()]
+    if len(replies) != len(starts):
+        sys.exit(f"error: {args.rapier} answered {len(replies)} of {len(starts)} queries")
+
+    # Drift of this engine from MuJoCo after h steps from the same state, over all starts.
+    horizons = sorted({1, 5, 25, horizon} & set(range(1, horizon + 1)))
+    measures = {
+        "tilt_deg": lambda p, v: tilt_deg(p[3:7]),
+        "pitch_deg": lambda p, v: pitch_deg(p[3:7]),
+        "q1_deg": lambda p, v: math.degrees(p[7]),
+        "q2_deg": lambda p, v: math.degrees(p[8]),
+        "x_mm": lambda p, v: 1000.0 * p[0],
+        "z_mm": lambda p, v: 1000.0 * p[2],
+        "pitch_rate": lambda p, v: v[4],
+        "q1_rate": lambda p, v: v[6],
+        "q2_rate": lambda p, v: v[7],
+    }
+    table = {}
+    for h in horizons:
+        row = {}
+        for name, measure in measures.items():
+            differences = np.array(
+                [measure(np.array(reply[h - 1]["qpos"]), np.array(reply[h - 1]["qvel"])) - measure(qpos[s + h], qvel[s + h])
+                 for s, reply in zip(starts, replies)]
+            )
+            row[name] = {"mean_abs": float(np.abs(differences).mean()), "mean": float(differences.mean())}
+        table[h] = row
+    # One-step differences by what the crawler is doing at the start: where the engines
+    # disagree about single steps says which part of the physics differs.
+    by_phase = {}
+    for phase in sorted(set(phases[s] for s in starts)):
+        chosen = [(s, reply) for s, reply in zip(starts, replies) if phases[s] == phase]
+        row = {"replays": len(chosen)}
+        for name in ("pitch_rate", "q1_rate", "q2_rate"):
+            measure = measures[name]
+            row[name] = float(np.mean([
+                abs(measure(np.array(reply[0]["qpos"]), np.array(reply[0]["qvel"])) - measure(qpos[s + 1], qvel[s + 1]))
+                for s, reply in chosen
+            ]))
+        by_phase[phase] = row
+    # The states from which MuJoCo's base tips past 90° within the horizon while still
+    # within 45° of upright: does this engine tip from them too?
+    onsets = []
+    for s, reply in zip(starts, replies):
+        if tilt_deg(qpos[s][3:7]) < 45.0 and max(tilt_deg(qpos[s + h][3:7]) for h in range(1, horizon + 1)) > 90.0:
+            ours = max(tilt_deg(np.array(state["qpos"])[3:7]) for state in reply)
+            onsets.append({"time": s * crawler.dt, "tilt_deg": tilt_deg(qpos[s][3:7]), "rapier_max_tilt_deg": ours})
+    report = {
+        "gait": gait,
+        "start_deg": args.start,
+        "lift": args.lift,
+        "replays": len(starts),
+        "horizon_steps": horizon,
+        "mujoco_flips": crawler.flips,
+        "mujoco_speed": float(qpos[steps][0] - qpos[0][0]) / args.seconds,
+        "drift": {str(h): row for h, row in table.items()},
+        "one_step_by_phase": by_phase,
+        "tip_onsets": {
+            "count": len(onsets),
+            "rapier_tips_too": sum(o["rapier_max_tilt_deg"] > 90.0 for o in onsets),
+            "rapier_max_tilt_deg_median": float(np.median([o["rapier_max_tilt_deg"] for o in onsets])) if onsets else None,
+        },
+    }
+    json.dump(report, sys.stdout)
+    print()
+    print(f"{len(starts)} replays of {horizon} steps from MuJoCo's trajectory "
+          f"({report['mujoco_speed']:.3f} m/s, {crawler.flips} flips there):", file=sys.stderr)
+    for h, row in table.items():
+        cells = ", ".join(f"{name} {row[name]['mean_abs']:.3g} ({row[name]['mean']:+.3g})" for name in measures)
+        print(f"  after {h} steps, mean |rapier − MuJoCo| (mean signed): {cells}", file=sys.stderr)
+    for phase, row in by_phase.items():
+        print(f"  one step from {row['replays']} states '{phase}': mean |Δ| pitch rate {row['pitch_rate']:.3g}, "
+              f"q1 rate {row['q1_rate']:.3g}, q2 rate {row['q2_rate']:.3g} rad/s", file=sys.stderr)
+    tips = report["tip_onsets"]
+    print(f"  MuJoCo tips past 90° from {tips['count']} of the states (≤ 45° at the start); this engine from "
+          f"{tips['rapier_tips_too']} of them (median largest tilt {tips['rapier_max_tilt_deg_median']})",
+          file=sys.stderr)
+
+
 def observe(args) -> None:
     crawler = Crawler()
     crawler.reset(args.q1, args.q2)
@@ -353,6 +519,21 @@ def main() -> None:
     observe_parser.set_defaults(run=observe)
     gait_parser = commands.add_parser("gaits", help="the gait bank from stdin, in MuJoCo")
     gait_parser.set_defaults(run=gaits)
+    replay_parser = commands.add_parser("replay", help="sim-to-sim state replay along a MuJoCo trajectory")
+    replay_parser.add_argument("--rapier", required=True, help="the state_replay example's binary")
+    replay_parser.add_argument(
+        "--gait", type=float, nargs=6, default=[0.3, -1.0, 1.0, 0.0, -1.0, 0.0],
+        metavar=("PERIOD", "HIGH1", "HIGH2", "LOW1", "LOW2", "LAG"),
+        help="the square wave (default: the issue's tumbling gait, 0.3 s, τ1 −1/0, τ2 +1/−1)",
+    )
+    replay_parser.add_argument("--checkpoint", help="replay this policy's MuJoCo trajectory instead of a gait")
+    replay_parser.add_argument("--start", type=float, nargs=2, default=[-22.5, 11.25], metavar=("Q1_DEG", "Q2_DEG"))
+    replay_parser.add_argument("--seconds", type=float, default=5.0)
+    replay_parser.add_argument("--every", type=int, default=5, help="replay from every n-th physics step")
+    replay_parser.add_argument("--horizon", type=int, default=50, help="physics steps per replay")
+    replay_parser.add_argument("--lift", type=float, default=0.0, help="start this high in the air (m): no contacts")
+    replay_parser.add_argument("overrides", nargs="*", help="env settings KEY=VALUE for this engine")
+    replay_parser.set_defaults(run=replay)
     args = parser.parse_args()
     args.run(args)
 

@@ -55,13 +55,10 @@ pub struct EnvConfig {
     /// clamped into joint 2's limits (0°…150°).
     pub start_joint2_deg: [f32; 2],
     /// Joint limits: 0 makes them rigid (rapier's limit constraints). A positive value makes
-    /// them soft like MuJoCo's: past a limit, a critically damped spring-damper with this
-    /// time constant (seconds) pushes the joint back. The study's MuJoCo limits are soft
-    /// (`solreflimit` 0.02 s), and rigid limits are what let open-loop gaits and learned
-    /// policies crawl here while they tumble there. 0.05 s is the value whose overshoot
-    /// matches MuJoCo's on the gait bank (a median of 24° against 23.6°; EXPERIMENTS.md):
-    /// this model scales the reference acceleration by the arm's inertia with the base held,
-    /// MuJoCo by the smaller inertia the free base leaves, so its 0.02 s is softer than ours.
+    /// them soft as MuJoCo's are, with this time constant (seconds) in MuJoCo's own
+    /// soft-constraint formula (`Crawler::update_soft_limits`); 0.02 s is MuJoCo's default
+    /// `solreflimit`, which the study's model keeps. Rigid limits are what let open-loop gaits
+    /// and learned policies crawl here while they tumble on the study's model.
     pub joint_limit_timeconst: f32,
     /// An episode terminates once the base tilts further than this from upright, in degrees
     /// (the angle between its up axis and the world's). 180 never terminates: the study. A
@@ -94,7 +91,7 @@ impl Default for EnvConfig {
             solver_iterations: 4,
             start_joint1_deg: [-45.0, 0.0],
             start_joint2_deg: [-22.5, 22.5],
-            joint_limit_timeconst: 0.05,
+            joint_limit_timeconst: 0.02,
             max_tilt_deg: 180.0,
             tilt_rate_penalty: 0.0,
             randomization: Randomization::default(),

@@ -83,6 +83,26 @@ pub struct PoseFrame {
     pub joint_angles: [f32; 2],
 }
 
+/// A crawler's state in the study's MuJoCo generalized coordinates; see
+/// [`Crawler::generalized_state`].
+#[derive(Debug, Clone, Copy, PartialEq, Default, serde::Serialize, serde::Deserialize)]
+pub struct GeneralizedState {
+    /// Base position (3), base quaternion w, x, y, z (4), joint angles (2).
+    pub qpos: [f32; 9],
+    /// Base linear velocity, world frame (3); base angular velocity, base frame (3); joint
+    /// rates (2).
+    pub qvel: [f32; 8],
+}
+
+/// Why [`Crawler::set_generalized_state`] refused a state.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, thiserror::Error)]
+pub enum InvalidStateError {
+    #[error("state value {index} (qpos then qvel, 0-based) is not finite")]
+    NotFinite { index: usize },
+    #[error("the base quaternion (qpos[3..7]) is zero; give a unit quaternion w, x, y, z")]
+    ZeroQuaternion,
+}
+
 #[derive(Debug, Clone, Copy)]
 struct Handles {
     base: RigidBodyHandle,
@@ -256,9 +276,11 @@ impl Crawler {
             decided
         };
         let strength = self.physics.motor_strength;
-        let torques = [torques[0] * strength[0], torques[1] * strength[1]];
+        // The shoulder's damping (the MJCF's base–link 1 contact) acts beside its motor.
+        let shoulder_rate = self.joint_rates()[0];
+        let torques = [torques[0] * strength[0] - SHOULDER_DAMPING * shoulder_rate, torques[1] * strength[1]];
         if self.physics.joint_limit_timeconst > 0.0 {
-            self.update_soft_limits();
+            self.update_soft_limits(torques);
         }
         let bodies = &mut self.world.bodies;
         let axis1 = bodies[self.handles.base].rotation() * Vector::Y;
@@ -282,38 +304,50 @@ impl Crawler {
         }
     }
 
-    /// Soft joint limits, as MuJoCo's: a joint past a limit by r with rate v is pushed back
-    /// towards the reference acceleration of MuJoCo's limit constraint, k·r − b·v (k = 1/τ²,
-    /// b = 2/τ for time constant τ, critically damped), scaled to a torque by the joint's
-    /// inertia (the arm beyond it, about the hinge). rapier solves it implicitly as a
-    /// force-based spring-damper motor on the hinge, stable at any stiffness. Like MuJoCo's
-    /// unilateral constraint it only pushes back into range: when the spring-damper would
-    /// pull (a fast return), or the joint is inside its range, the motor is off.
-    fn update_soft_limits(&mut self) {
+    /// Soft joint limits, as MuJoCo computes them (its soft-constraint model with the default
+    /// `solreflimit` and `solimplimit`). A joint past a limit by r (negative: beyond it) with
+    /// rate v, measured into the range, has the reference acceleration
+    /// `a_ref = −b·v − k·d·r` (k = 1/(d_max·τ)², b = 2/(d_max·τ), τ the time constant, d the
+    /// impedance at r). MuJoCo's constraint force is `f = d·(a_ref − a₀)/A`, a₀ being the
+    /// joint's acceleration without the limit and A its inverse inertia along the limit, so
+    /// the joint accelerates at `d·a_ref + (1 − d)·a₀`. The limit only pushes into range, so
+    /// it is off whenever a₀ already exceeds a_ref.
+    ///
+    /// rapier solves the same equation: a velocity motor on the hinge targeting `v + dt·a_ref`
+    /// whose compliance is MuJoCo's regulariser, `(1 − d)/d · A` (an acceleration-based motor
+    /// with damping `d/((1 − d)·dt)`), gives the impulse `d·dt·(a_ref − a₀)/A`, with A and a₀
+    /// (gravity, contacts, the other joint) found by rapier's solver as MuJoCo's are. Only the
+    /// on/off decision estimates a₀, from the motor torques alone with the base held
+    /// ([`arm_accelerations`]).
+    fn update_soft_limits(&mut self, torques: [f32; 2]) {
         let timeconst = self.physics.joint_limit_timeconst;
-        let (stiffness, damping) = (1.0 / (timeconst * timeconst), 2.0 / timeconst);
+        let stiffness = 1.0 / (LIMIT_IMPEDANCE_MAX * timeconst).powi(2);
+        let damping = 2.0 / (LIMIT_IMPEDANCE_MAX * timeconst);
+        let dt = self.config.dt;
         let angles = self.joint_angles();
         let rates = self.joint_rates();
-        let inertias = joint_inertias(angles[1]);
+        let free_accelerations = arm_accelerations(angles[1], torques);
         for (index, [low, high]) in [JOINT1_RANGE, JOINT2_RANGE].into_iter().enumerate() {
             let (angle, rate) = (angles[index], rates[index]);
-            let limit = if angle < low {
-                Some(low)
+            // Distance into the range from the nearer violated limit (negative past it), and
+            // the direction into the range.
+            let (distance, inward) = if angle < low {
+                (angle - low, 1.0)
             } else if angle > high {
-                Some(high)
+                (high - angle, -1.0)
             } else {
-                None
+                (0.0, 0.0)
             };
-            // Pushing means towards the range: the sign of (limit − angle).
-            let limit = limit.filter(|&limit| (stiffness * (limit - angle) - damping * rate) * (limit - angle) > 0.0);
             let Some(joint) = self.world.impulse_joints.get_mut(self.handles.joints[index], false) else { continue };
-            match limit {
-                Some(limit) => {
-                    let inertia = inertias[index];
-                    joint.data.set_motor(JointAxis::AngX, limit, 0.0, stiffness * inertia, damping * inertia);
-                }
-                None => joint.data.motor_axes.remove(JointAxesMask::ANG_X),
+            let impedance = limit_impedance(distance.abs());
+            let reference = -damping * inward * rate - stiffness * impedance * distance;
+            if inward == 0.0 || reference <= inward * free_accelerations[index] {
+                joint.data.motor_axes.remove(JointAxesMask::ANG_X);
+                continue;
             }
+            let target_rate = rate + dt * inward * reference;
+            let compliance_damping = impedance / ((1.0 - impedance) * dt);
+            joint.data.set_motor(JointAxis::AngX, 0.0, target_rate, 0.0, compliance_damping);
         }
     }
 
@@ -323,8 +357,7 @@ impl Crawler {
         if weight == 0.0 {
             return 0.0;
         }
-        let base = &self.world.bodies[self.handles.base];
-        let local = base.rotation().inverse() * base.angvel();
+        let local = self.base_angvel_local();
         -(weight * self.config.dt * (local.x * local.x + local.y * local.y)).min(0.5)
     }
 
@@ -377,7 +410,7 @@ impl Crawler {
         out[obs::BASE_QUAT].copy_from_slice(&[rotation.w, rotation.x, rotation.y, rotation.z]);
         out[obs::JOINT_ANGLES].copy_from_slice(&self.joint_angles());
         out[obs::BASE_LINVEL].copy_from_slice(&base.linvel().to_array());
-        out[obs::BASE_ANGVEL].copy_from_slice(&(rotation.inverse() * base.angvel()).to_array());
+        out[obs::BASE_ANGVEL].copy_from_slice(&self.base_angvel_local().to_array());
         out[obs::JOINT_RATES].copy_from_slice(&self.joint_rates());
         out[obs::LINK1_ANGVEL].copy_from_slice(&link1.angvel().to_array());
         out[obs::LINK2_ANGVEL].copy_from_slice(&link2.angvel().to_array());
@@ -489,6 +522,75 @@ impl Crawler {
         pose_frame(&self.world, &self.handles, self.episode.physics_steps as f32 * self.config.dt)
     }
 
+    /// The crawler's state in the generalized coordinates of the study's MuJoCo model: `qpos`
+    /// is the base's position, its quaternion (w, x, y, z) and the joint angles; `qvel` the
+    /// base's linear velocity (world frame), its angular velocity (base frame) and the joint
+    /// rates. The sim-to-sim state replay (`scripts/mujoco-check replay`) reads and writes
+    /// both engines through it.
+    pub fn generalized_state(&self) -> GeneralizedState {
+        let base = &self.world.bodies[self.handles.base];
+        let (t, r) = (base.translation(), *base.rotation());
+        let [q1, q2] = self.joint_angles();
+        let [r1, r2] = self.joint_rates();
+        let v = base.linvel();
+        let w = self.base_angvel_local();
+        GeneralizedState {
+            qpos: [t.x, t.y, t.z, r.w, r.x, r.y, r.z, q1, q2],
+            qvel: [v.x, v.y, v.z, w.x, w.y, w.z, r1, r2],
+        }
+    }
+
+    /// Puts every body where `state` says, moving with the velocities it gives, as MuJoCo's
+    /// `qpos`/`qvel` would (see [`Self::generalized_state`]). The episode's counters keep
+    /// running; contacts are found afresh at the next step. A non-finite value or a zero
+    /// quaternion is refused and leaves the crawler as it was.
+    pub fn set_generalized_state(&mut self, state: &GeneralizedState) -> Result<(), InvalidStateError> {
+        if let Some(index) = state.qpos.iter().chain(&state.qvel).position(|v| !v.is_finite()) {
+            return Err(InvalidStateError::NotFinite { index });
+        }
+        let [x, y, z, qw, qx, qy, qz, q1, q2] = state.qpos;
+        let quaternion = Rotation::from_xyzw(qx, qy, qz, qw);
+        if quaternion.length() < 1e-6 {
+            return Err(InvalidStateError::ZeroQuaternion);
+        }
+        let base_rotation = quaternion.normalize();
+        let [vx, vy, vz, wx, wy, wz, rate1, rate2] = state.qvel;
+        let base_origin = Vector::new(x, y, z);
+        let base_angvel = base_rotation * Vector::new(wx, wy, wz);
+        // Both hinges turn about the base's y axis: the chain stays in one plane of the base.
+        let axis = base_rotation * Vector::Y;
+        let link1_rotation = base_rotation * Rotation::from_rotation_y(q1);
+        let link2_rotation = link1_rotation * Rotation::from_rotation_y(q2);
+        let link1_origin = base_origin + base_rotation * Vector::new(BASE_HALF_EXTENT, 0.0, 0.0);
+        let link2_origin = link1_origin + link1_rotation * Vector::new(LINK1_LENGTH, 0.0, 0.0);
+        let link1_angvel = base_angvel + rate1 * axis;
+        let link2_angvel = link1_angvel + rate2 * axis;
+        // Velocities of the hinge points, then of each body's centre of mass (rapier's linvel).
+        let base_linvel = Vector::new(vx, vy, vz);
+        let link1_origin_velocity = base_linvel + base_angvel.cross(link1_origin - base_origin);
+        let link2_origin_velocity = link1_origin_velocity + link1_angvel.cross(link2_origin - link1_origin);
+        let handles = self.handles;
+        let bodies = &mut self.world.bodies;
+        for (handle, origin, rotation, origin_velocity, angvel) in [
+            (handles.base, base_origin, base_rotation, base_linvel, base_angvel),
+            (handles.link1, link1_origin, link1_rotation, link1_origin_velocity, link1_angvel),
+            (handles.link2, link2_origin, link2_rotation, link2_origin_velocity, link2_angvel),
+        ] {
+            let body = &mut bodies[handle];
+            body.set_position(Pose::from_parts(origin, rotation), true);
+            let centre_of_mass = body.center_of_mass();
+            body.set_linvel(origin_velocity + angvel.cross(centre_of_mass - origin), true);
+            body.set_angvel(angvel, true);
+        }
+        Ok(())
+    }
+
+    /// The base's angular velocity in its own frame (MuJoCo's free-joint `qvel[3..6]`).
+    fn base_angvel_local(&self) -> Vector {
+        let base = &self.world.bodies[self.handles.base];
+        base.rotation().inverse() * base.angvel()
+    }
+
     /// Holds the base fixed at height `z` above its resting height (diagnostics: the arm
     /// then hangs free of the floor). Undone by the next reset.
     pub fn hold_base_in_air(&mut self, z: f32) {
@@ -501,6 +603,38 @@ impl Crawler {
         }
         self.world.bodies[handles.base].set_body_type(RigidBodyType::Fixed, true);
     }
+}
+
+/// MuJoCo's default `solimplimit` (0.9, 0.95, 0.001, 0.5, 2): the impedance d of a limit
+/// constraint rises from 0.9 at the limit to 0.95 at 1 mm (here, radians) past it.
+const LIMIT_IMPEDANCE_MIN: f32 = 0.9;
+const LIMIT_IMPEDANCE_MAX: f32 = 0.95;
+const LIMIT_IMPEDANCE_WIDTH: f32 = 0.001;
+
+/// MuJoCo's impedance at a violation `depth` ≥ 0 for the limits' `solimp`: a smooth step
+/// (midpoint 0.5, power 2) from the minimum to the maximum over the width.
+fn limit_impedance(depth: f32) -> f32 {
+    let x = depth / LIMIT_IMPEDANCE_WIDTH;
+    if x >= 1.0 {
+        return LIMIT_IMPEDANCE_MAX;
+    }
+    let y = if x <= 0.5 { 2.0 * x * x } else { 1.0 - 2.0 * (1.0 - x) * (1.0 - x) };
+    LIMIT_IMPEDANCE_MIN + y * (LIMIT_IMPEDANCE_MAX - LIMIT_IMPEDANCE_MIN)
+}
+
+/// The joint accelerations the motor torques alone give the arm with the base held:
+/// M(q2)⁻¹·τ, with M the arm's 2×2 joint-space mass matrix (diagonal from
+/// [`joint_inertias`], coupling from link 2's centre of mass seen from the shoulder).
+fn arm_accelerations(q2: f32, torques: [f32; 2]) -> [f32; 2] {
+    let [shoulder, knee] = joint_inertias(q2);
+    let link2_mass = LINK2_MASS + TIP_MASS;
+    let link2_com = (LINK2_MASS * LINK2_LENGTH / 2.0 + TIP_MASS * LINK2_LENGTH) / link2_mass;
+    let coupling = knee + link2_mass * LINK1_LENGTH * link2_com * q2.cos();
+    let determinant = shoulder * knee - coupling * coupling;
+    [
+        (knee * torques[0] - coupling * torques[1]) / determinant,
+        (shoulder * torques[1] - coupling * torques[0]) / determinant,
+    ]
 }
 
 /// Each hinge's inertia about its own axis with the parent held still: link 1 and link 2
@@ -696,7 +830,7 @@ fn build_world(config: &EnvConfig, physics: &EpisodePhysics, q1: f32, q2: f32) -
             .local_anchor1(anchor)
             .local_anchor2(Vector::ZERO)
             .contacts_enabled(false)
-            .motor_model(MotorModel::ForceBased)
+            .motor_model(MotorModel::AccelerationBased)
             .motor_max_force(f32::MAX);
         if physics.joint_limit_timeconst > 0.0 { joint } else { joint.limits(range) }
     };
@@ -762,6 +896,35 @@ mod tests {
         assert!((shoulder - expected_shoulder).abs() < 1e-5, "{shoulder} vs {expected_shoulder}");
         let [folded, _] = joint_inertias(std::f32::consts::FRAC_PI_2);
         assert!(folded < shoulder, "folding the knee brings link 2 closer to the shoulder");
+    }
+
+    #[test]
+    fn arm_accelerations_match_mujocos_joint_space_mass_matrix() {
+        // MuJoCo 4.0's mass matrix of crawling_robot.xml at q2 = 0.2: its joint block
+        // (the arm's with the base held) is [[0.032622, 0.014801], [0.014801, 0.007745]].
+        let (m11, m12, m22) = (0.032622f32, 0.014801f32, 0.007745f32);
+        let det = m11 * m22 - m12 * m12;
+        for torques in [[1.0f32, 0.0], [0.0, 1.0], [-0.5, 1.0]] {
+            let expected = [(m22 * torques[0] - m12 * torques[1]) / det, (m11 * torques[1] - m12 * torques[0]) / det];
+            let ours = arm_accelerations(0.2, torques);
+            for (a, b) in ours.iter().zip(&expected) {
+                assert!((a - b).abs() <= 0.01 * b.abs().max(1.0), "{torques:?}: {ours:?} vs {expected:?}");
+            }
+        }
+    }
+
+    #[test]
+    fn limit_impedance_rises_smoothly_from_its_minimum_to_its_maximum() {
+        assert!((limit_impedance(0.0) - LIMIT_IMPEDANCE_MIN).abs() < 1e-6);
+        assert!((limit_impedance(LIMIT_IMPEDANCE_WIDTH / 2.0) - 0.925).abs() < 1e-6);
+        assert_eq!(limit_impedance(LIMIT_IMPEDANCE_WIDTH), LIMIT_IMPEDANCE_MAX);
+        assert_eq!(limit_impedance(0.5), LIMIT_IMPEDANCE_MAX);
+        let mut previous = 0.0;
+        for i in 0..=100 {
+            let d = limit_impedance(i as f32 * LIMIT_IMPEDANCE_WIDTH / 100.0);
+            assert!(d >= previous, "not monotone at {i}");
+            previous = d;
+        }
     }
 
     #[test]

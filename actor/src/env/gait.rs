@@ -15,14 +15,14 @@ pub struct SquareWaveGait {
 
 impl SquareWaveGait {
     /// A gait that crawls forward, upright, in this engine and on the study's MuJoCo model
-    /// alike (0.14 and 0.12 m/s over the gait bank's three starts, no flips in either:
+    /// alike (0.20 and 0.12 m/s over the gait bank's three starts, no flips in either:
     /// `scripts/mujoco-check gaits`). A half-strength knee keeps the base down.
     pub const FORWARD: SquareWaveGait =
         SquareWaveGait { period: 0.3, high: [-1.0, 0.5], low: [0.0, -0.5], phase_lag: 0.0 };
 
     /// The gait this engine let crawl at 0.73 m/s while it had rigid joint limits, and which
-    /// tumbles on the study's MuJoCo model (about 100 flips in 20 s): the canary of the
-    /// forgiving physics issue 18 fixed.
+    /// tumbles on the study's MuJoCo model (about 100 flips in 20 s) and here (from some
+    /// starts): the canary of the forgiving physics issue 18 fixed.
     pub const TUMBLES_IN_MUJOCO: SquareWaveGait =
         SquareWaveGait { period: 0.3, high: [-1.0, 1.0], low: [0.0, -1.0], phase_lag: 0.0 };
 

@@ -12,7 +12,7 @@ pub mod randomization;
 mod vec_env;
 
 pub use config::{Direction, EnvConfig, EnvConfigError};
-pub use crawler::{Crawler, EpisodeSummary, PoseFrame, Reward, StepOutcome};
+pub use crawler::{Crawler, EpisodeSummary, GeneralizedState, InvalidStateError, PoseFrame, Reward, StepOutcome};
 pub use observation::{OBS_DIM, OBS_LAYOUT_VERSION};
 pub use randomization::{EpisodePhysics, Randomization};
 pub use vec_env::VecEnv;

@@ -26,6 +26,14 @@ pub const TIP_HALF_EXTENT: f32 = 0.01;
 pub const TIP_MASS: f32 = 0.1;
 pub const TIP_FRICTION: f32 = 0.99;
 
+/// Viscous damping at the shoulder, N·m·s/rad. The MJCF declares a contact pair between the
+/// base and link 1, whose capsule starts at the hinge and so overlaps the base by its radius
+/// at every angle. Along the hinge that contact can only rub: MuJoCo's soft friction turns it
+/// into a torque against the shoulder's rate, −0.0069·q̇1 (a least-squares fit over 400
+/// random states, R² = 0.9997; `EXPERIMENTS.md`, "State replay"). A 10 rad/s swing loses
+/// 0.07 N·m of its motor's 1 N·m to it.
+pub const SHOULDER_DAMPING: f32 = 0.0069;
+
 pub const FLOOR_Z: f32 = -0.05;
 pub const FLOOR_FRICTION: f32 = 0.5;
 
