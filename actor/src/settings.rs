@@ -162,6 +162,8 @@ impl From<&EnvConfig> for proto::EnvSettings {
                     joint_limit_timeconst: r.joint_limit_timeconst.to_vec(),
                     latency_steps: r.latency_steps.to_vec(),
                     observation_noise: r.observation_noise,
+                    push_interval_s: r.push_interval_s,
+                    push_roll_rate: r.push_roll_rate,
                 }
             }),
         }
@@ -185,6 +187,8 @@ impl TryFrom<&proto::RandomizationSettings> for Randomization {
             joint_limit_timeconst: pair(&r.joint_limit_timeconst, "env.randomization.joint_limit_timeconst")?,
             latency_steps: latency,
             observation_noise: r.observation_noise,
+            push_interval_s: r.push_interval_s,
+            push_roll_rate: r.push_roll_rate,
         })
     }
 }
@@ -290,8 +294,10 @@ mod tests {
         settings.env.action_repeat = 10;
         settings.env.max_tilt_deg = 60.0;
         settings.env.tilt_rate_penalty = 0.02;
-        settings.env.joint_limit_timeconst = 0.02;
+        settings.env.joint_limit_timeconst = 0.03;
         settings.env.randomization.latency_steps = [0, 2];
+        settings.env.randomization.push_interval_s = 1.5;
+        settings.env.randomization.push_roll_rate = 4.0;
         settings.exploration = Exploration::Decay { start: 1.0, factor: 0.99, every: 100, min: 0.05 };
         let wire = proto::ActorSettings::from(&settings);
         assert_eq!(ActorSettings::try_from(&wire), Ok(settings.clone()));

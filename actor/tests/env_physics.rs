@@ -435,3 +435,27 @@ fn a_generalized_state_reads_back_as_written_and_replays_a_trajectory() {
     assert!(error.to_string().contains("quaternion"), "{error}");
     assert_eq!(spinning.generalized_state(), before);
 }
+
+#[test]
+fn roll_pushes_tip_the_crawler_sideways_and_only_when_asked() {
+    use crawler_actor::env::Randomization;
+    // The largest roll (degrees) of a crawler holding still for 2 s, and its final tilt.
+    let roll_of = |randomization: Randomization, seed: u64| {
+        let mut crawler = Crawler::new(EnvConfig { randomization, ..endless() }, seed);
+        let mut largest: f32 = 0.0;
+        for _ in 0..1000 {
+            crawler.step_torques([0.0, 0.0]);
+            let [_, _, _, w, x, y, z, _, _] = crawler.generalized_state().qpos;
+            let roll = (2.0 * (w * x + y * z)).atan2(1.0 - 2.0 * (x * x + y * y));
+            largest = largest.max(roll.abs().to_degrees());
+        }
+        largest
+    };
+    assert!(roll_of(Randomization::default(), 3) < 0.01, "no pushes: the crawler stays in its plane");
+    let pushed = Randomization { push_interval_s: 0.5, push_roll_rate: 3.0, ..Randomization::default() };
+    let rolls: Vec<f32> = (0..4).map(|seed| roll_of(pushed.clone(), seed)).collect();
+    assert!(rolls.iter().all(|&r| r > 0.5), "every crawler is rolled by its pushes: {rolls:?}");
+    assert!(rolls.iter().all(|&r| r < 60.0), "a 3 rad/s push on a still crawler does not roll it over: {rolls:?}");
+    assert_ne!(rolls[0], rolls[1], "each crawler draws its own pushes");
+    assert_eq!(roll_of(pushed.clone(), 2), rolls[2], "and the same seed the same ones");
+}

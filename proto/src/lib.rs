@@ -24,7 +24,10 @@ pub use validate::{ProtoError, SequenceTracker, TransitionLimits};
 ///    older actor would read it as absent and never end an episode on a fall.
 /// 5: the env settings carry the rocking penalty (`EnvSettings.tilt_rate_penalty`) and episode
 ///    stats its part of the return; an older actor would train on another reward.
-pub const PROTOCOL_VERSION: u32 = 5;
+/// 6: the physics randomisation carries roll pushes (`RandomizationSettings.push_interval_s`,
+///    `push_roll_rate`), and the joint limits follow MuJoCo's formula; an older actor would
+///    simulate other physics.
+pub const PROTOCOL_VERSION: u32 = 6;
 
 /// Largest encoded message a node accepts, in bytes. The largest legal messages: a batch of
 /// [`MAX_BATCH_TRANSITIONS`] transitions of 40 values (about 1.4 MB) and the weights of a

@@ -182,6 +182,10 @@ pub struct RandomizationSettings {
     pub latency_steps: Vec<u32>,
     #[prost(float, tag = "6")]
     pub observation_noise: f32,
+    #[prost(float, tag = "7")]
+    pub push_interval_s: f32,
+    #[prost(float, tag = "8")]
+    pub push_roll_rate: f32,
 }
 
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, PartialOrd, Ord, prost::Enumeration)]

@@ -295,12 +295,41 @@ impl Crawler {
             body.reset_torques(false);
             body.add_torque(torque, true);
         }
+        self.push_if_due();
         self.world.step();
         self.episode.physics_steps += 1;
         self.read_touch_sensors();
         if let Some(frames) = &mut self.recording {
             let frame = pose_frame(&self.world, &self.handles, self.episode.physics_steps as f32 * self.config.dt);
             frames.push(frame);
+        }
+    }
+
+    /// Every `push_interval_s` of an episode, rolls the whole crawler about its base's x axis
+    /// by a rate drawn from ±`push_roll_rate`, pivoting on the base's lower edge on the side it
+    /// rolls towards, as a shove from the side tips a box: each body gets the same added
+    /// angular velocity, and the linear velocity that rotation gives its centre of mass.
+    fn push_if_due(&mut self) {
+        let (interval, max_rate) = (self.physics.push_interval_s, self.physics.push_roll_rate);
+        if interval <= 0.0 || max_rate <= 0.0 {
+            return;
+        }
+        let every = ((interval / self.config.dt).round() as u32).max(1);
+        let step = self.episode.physics_steps;
+        if step == 0 || step % every != 0 {
+            return;
+        }
+        let rate = self.rng.random_range(-max_rate..=max_rate);
+        let base = &self.world.bodies[self.handles.base];
+        // A positive roll about x lifts the +y side: the pivot is the −y lower edge.
+        let edge = Vector::new(0.0, -BASE_HALF_EXTENT * rate.signum(), -BASE_HALF_EXTENT);
+        let (pivot, spin) = (base.translation() + base.rotation() * edge, rate * (base.rotation() * Vector::X));
+        for handle in [self.handles.base, self.handles.link1, self.handles.link2] {
+            let body = &mut self.world.bodies[handle];
+            let linvel = body.linvel() + spin.cross(body.center_of_mass() - pivot);
+            let angvel = body.angvel() + spin;
+            body.set_linvel(linvel, true);
+            body.set_angvel(angvel, true);
         }
     }
 

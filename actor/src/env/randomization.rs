@@ -32,6 +32,13 @@ pub struct Randomization {
     /// Standard deviation of zero-mean noise added to each observed value, relative to a
     /// unit per value (uniform noise of that spread). Drawn anew for every decision.
     pub observation_noise: f32,
+    /// Seconds between pushes that roll the whole crawler about its base's own x axis, as
+    /// legged_gym's `push_robots` (0: never). On the study's model the fast gaits fail by
+    /// rolling onto a side; this engine keeps a symmetric crawler in its plane, so without
+    /// pushes a policy never meets a roll (EXPERIMENTS.md, "State replay").
+    pub push_interval_s: f32,
+    /// Largest roll rate a push adds, rad/s; each push draws uniformly from ±this.
+    pub push_roll_rate: f32,
 }
 
 impl Default for Randomization {
@@ -43,21 +50,25 @@ impl Default for Randomization {
             joint_limit_timeconst: [0.0, 0.0],
             latency_steps: [0, 0],
             observation_noise: 0.0,
+            push_interval_s: 0.0,
+            push_roll_rate: 0.0,
         }
     }
 }
 
 impl Randomization {
     /// The perturbations `eval --perturbed` reports speed under: ±30 % friction, ±20 % masses,
-    /// motors at 80–100 %, limits from nearly rigid to twice as soft as the default, and up
-    /// to 4 ms of latency.
+    /// motors at 80–100 %, limits from twice as stiff to twice as soft as MuJoCo's, and up to
+    /// 4 ms of latency.
     pub const EVAL_PERTURBATIONS: Randomization = Randomization {
         friction_scale: [0.7, 1.3],
         mass_scale: [0.8, 1.2],
         motor_strength: [0.8, 1.0],
-        joint_limit_timeconst: [0.01, 0.1],
+        joint_limit_timeconst: [0.01, 0.04],
         latency_steps: [0, 2],
         observation_noise: 0.0,
+        push_interval_s: 0.0,
+        push_roll_rate: 0.0,
     };
 
     /// Whether any range draws something other than the env's nominal physics.
@@ -105,6 +116,14 @@ impl Randomization {
         if !(noise.is_finite() && (0.0..=1.0).contains(&noise)) {
             return error("randomization.observation_noise", noise.to_string(), "a number in [0, 1]");
         }
+        let interval = self.push_interval_s;
+        if !(interval.is_finite() && (interval == 0.0 || (0.01..=1000.0).contains(&interval))) {
+            return error("randomization.push_interval_s", interval.to_string(), "0 (no pushes) or [0.01, 1000] s");
+        }
+        let rate = self.push_roll_rate;
+        if !(rate.is_finite() && (0.0..=50.0).contains(&rate)) {
+            return error("randomization.push_roll_rate", rate.to_string(), "a number in [0, 50] rad/s");
+        }
         Ok(())
     }
 
@@ -131,6 +150,8 @@ impl Randomization {
             joint_limit_timeconst,
             latency_steps,
             observation_noise: self.observation_noise,
+            push_interval_s: self.push_interval_s,
+            push_roll_rate: self.push_roll_rate,
         }
     }
 }
@@ -145,10 +166,13 @@ pub struct EpisodePhysics {
     pub joint_limit_timeconst: f32,
     pub latency_steps: u32,
     pub observation_noise: f32,
+    /// Seconds between roll pushes (0: none) and their largest roll rate, rad/s.
+    pub push_interval_s: f32,
+    pub push_roll_rate: f32,
 }
 
 impl EpisodePhysics {
-    /// The env's own physics: no scaling, no latency, no noise.
+    /// The env's own physics: no scaling, no latency, no noise, no pushes.
     pub fn nominal(joint_limit_timeconst: f32) -> Self {
         Self {
             friction_scale: 1.0,
@@ -157,6 +181,8 @@ impl EpisodePhysics {
             joint_limit_timeconst,
             latency_steps: 0,
             observation_noise: 0.0,
+            push_interval_s: 0.0,
+            push_roll_rate: 0.0,
         }
     }
 }
@@ -180,7 +206,7 @@ mod tests {
             assert!((0.7..=1.3).contains(&physics.friction_scale));
             assert!(physics.mass_scale.iter().all(|m| (0.8..=1.2).contains(m)));
             assert!(physics.motor_strength.iter().all(|m| (0.8..=1.0).contains(m)));
-            assert!((0.01..=0.1).contains(&physics.joint_limit_timeconst));
+            assert!((0.01..=0.04).contains(&physics.joint_limit_timeconst));
             assert!(physics.latency_steps <= 2);
         }
     }
@@ -193,5 +219,9 @@ mod tests {
         assert_eq!(bad.validate().unwrap_err().key, "randomization.observation_noise");
         let bad = Randomization { latency_steps: [0, 500], ..Randomization::default() };
         assert_eq!(bad.validate().unwrap_err().key, "randomization.latency_steps");
+        let bad = Randomization { push_interval_s: 0.001, ..Randomization::default() };
+        assert_eq!(bad.validate().unwrap_err().key, "randomization.push_interval_s");
+        let bad = Randomization { push_roll_rate: f32::INFINITY, ..Randomization::default() };
+        assert_eq!(bad.validate().unwrap_err().key, "randomization.push_roll_rate");
     }
 }
