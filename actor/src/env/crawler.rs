@@ -316,7 +316,7 @@ impl Crawler {
         }
         let every = ((interval / self.config.dt).round() as u32).max(1);
         let step = self.episode.physics_steps;
-        if step == 0 || step % every != 0 {
+        if step == 0 || !step.is_multiple_of(every) {
             return;
         }
         let rate = self.rng.random_range(-max_rate..=max_rate);

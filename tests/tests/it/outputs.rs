@@ -228,7 +228,7 @@ fn mujoco_check(args: &[&str], stdin: &str) -> String {
 
 /// `scripts/mujoco-check` with `args`, `stdin` piped in and extra environment `envs`; its
 /// stdout.
-fn mujoco_check_with(args: &[&str], stdin: &str, envs: &[(&str, &std::path::Path)]) -> String {
+fn mujoco_check_with(args: &[&str], stdin: &str, envs: &[(&str, &Path)]) -> String {
     use std::io::Write;
     let mut child = Command::new(repo_root().join("scripts/mujoco-check"))
         .args(args)
@@ -348,7 +348,7 @@ fn mujoco_state_replay_lands_single_steps_near_the_study_model() {
     // there is one; otherwise scripts/mujoco-check builds it.
     let exe = std::env::current_exe().unwrap();
     let example = exe.parent().and_then(|deps| deps.parent()).map(|profile| profile.join("examples/state_replay"));
-    let envs: Vec<(&str, &std::path::Path)> = match &example {
+    let envs: Vec<(&str, &Path)> = match &example {
         Some(path) if path.exists() => vec![("CRAWLER_STATE_REPLAY", path.as_path())],
         _ => Vec::new(),
     };
