@@ -277,10 +277,10 @@ impl Crawler {
         };
         let strength = self.physics.motor_strength;
         // The shoulder's damping (the MJCF's base–link 1 contact) acts beside its motor.
-        let shoulder_rate = self.joint_rates()[0];
-        let torques = [torques[0] * strength[0] - SHOULDER_DAMPING * shoulder_rate, torques[1] * strength[1]];
+        let rates = self.joint_rates();
+        let torques = [torques[0] * strength[0] - SHOULDER_DAMPING * rates[0], torques[1] * strength[1]];
         if self.physics.joint_limit_timeconst > 0.0 {
-            self.update_soft_limits(torques);
+            self.update_soft_limits(torques, rates);
         }
         let bodies = &mut self.world.bodies;
         let axis1 = bodies[self.handles.base].rotation() * Vector::Y;
@@ -348,13 +348,12 @@ impl Crawler {
     /// (gravity, contacts, the other joint) found by rapier's solver as MuJoCo's are. Only the
     /// on/off decision estimates a₀, from the motor torques alone with the base held
     /// ([`arm_accelerations`]).
-    fn update_soft_limits(&mut self, torques: [f32; 2]) {
+    fn update_soft_limits(&mut self, torques: [f32; 2], rates: [f32; 2]) {
         let timeconst = self.physics.joint_limit_timeconst;
         let stiffness = 1.0 / (LIMIT_IMPEDANCE_MAX * timeconst).powi(2);
         let damping = 2.0 / (LIMIT_IMPEDANCE_MAX * timeconst);
         let dt = self.config.dt;
         let angles = self.joint_angles();
-        let rates = self.joint_rates();
         let free_accelerations = arm_accelerations(angles[1], torques);
         for (index, [low, high]) in [JOINT1_RANGE, JOINT2_RANGE].into_iter().enumerate() {
             let (angle, rate) = (angles[index], rates[index]);
