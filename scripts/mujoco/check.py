@@ -175,6 +175,18 @@ def load_policy(path: Path) -> tuple[Path, dict, Mlp]:
     return checkpoint, meta, Mlp(load_file(str(checkpoint / "weights.safetensors")), meta["network"])
 
 
+def action_torques(env: dict):
+    """The checkpoint env's map from an action index to the torque pair (τ1, τ2): n levels per
+    joint spread over ±τmax, index a giving joint 1 level a // n and joint 2 level a % n."""
+    levels = int(env.get("action_levels", 5))
+    max_torque = float(env.get("max_torque", 1.0))
+
+    def torque(level: int) -> float:
+        return -max_torque + 2.0 * max_torque * level / max(levels - 1, 1)
+
+    return lambda action: np.array([torque(action // levels), torque(action % levels)])
+
+
 def act(args) -> None:
     _, _, policy = load_policy(Path(args.checkpoints))
     for line in sys.stdin:
@@ -186,13 +198,11 @@ def act(args) -> None:
 def evaluate(args) -> None:
     checkpoint, meta, policy = load_policy(Path(args.checkpoints))
     env = meta["config"].get("env", {})
-    levels = int(env.get("action_levels", 5))
-    max_torque = float(env.get("max_torque", 1.0))
+    torques_of = action_torques(env)
     repeat = int(args.action_repeat or env.get("action_repeat", 1))
     direction = -1.0 if env.get("direction", "forward") == "backward" else 1.0
     start1 = env.get("start_joint1_deg", [-45.0, 0.0])
     start2 = env.get("start_joint2_deg", [-22.5, 22.5])
-    torque_of = lambda level: -max_torque + 2.0 * max_torque * level / max(levels - 1, 1)  # noqa: E731
 
     crawler = Crawler()
     steps = round(args.seconds / crawler.dt)
@@ -206,7 +216,7 @@ def evaluate(args) -> None:
         step = 0
         while step < steps:
             action = int(np.argmax(policy(crawler.observe(torques))))
-            torques = np.array([torque_of(action // levels), torque_of(action % levels)])
+            torques = torques_of(action)
             for _ in range(min(repeat, steps - step)):
                 crawler.step(torques)
                 step += 1
@@ -373,9 +383,8 @@ def replay(args) -> None:
         # action repeat, are what this engine then plays from each state.
         _, meta, policy = load_policy(Path(args.checkpoint))
         env = meta["config"].get("env", {})
-        levels, max_torque = int(env.get("action_levels", 5)), float(env.get("max_torque", 1.0))
+        torques_of = action_torques(env)
         repeat = int(env.get("action_repeat", 1))
-        torque_of = lambda level: -max_torque + 2.0 * max_torque * level / max(levels - 1, 1)  # noqa: E731
         gait = {"checkpoint": args.checkpoint, "action_repeat": repeat}
     qpos, qvel, torques, phases = [], [], [], []
     crawler.reset(args.start[0] * DEG, args.start[1] * DEG)
@@ -390,7 +399,7 @@ def replay(args) -> None:
             torque = square_wave(gait, s * crawler.dt)
         elif s % repeat == 0:
             action = int(np.argmax(policy(crawler.observe(torque))))
-            torque = np.array([torque_of(action // levels), torque_of(action % levels)])
+            torque = torques_of(action)
         torques.append(torque)
         crawler.step(torque)
     qpos.append(crawler.data.qpos.copy())

@@ -650,13 +650,18 @@ fn limit_impedance(depth: f32) -> f32 {
     LIMIT_IMPEDANCE_MIN + y * (LIMIT_IMPEDANCE_MAX - LIMIT_IMPEDANCE_MIN)
 }
 
+/// Link 2 with its tip: total mass, and its centre of mass's distance from the knee.
+fn link2_mass_and_centre() -> (f32, f32) {
+    let mass = LINK2_MASS + TIP_MASS;
+    (mass, (LINK2_MASS * LINK2_LENGTH / 2.0 + TIP_MASS * LINK2_LENGTH) / mass)
+}
+
 /// The joint accelerations the motor torques alone give the arm with the base held:
 /// M(q2)⁻¹·τ, with M the arm's 2×2 joint-space mass matrix (diagonal from
 /// [`joint_inertias`], coupling from link 2's centre of mass seen from the shoulder).
 fn arm_accelerations(q2: f32, torques: [f32; 2]) -> [f32; 2] {
     let [shoulder, knee] = joint_inertias(q2);
-    let link2_mass = LINK2_MASS + TIP_MASS;
-    let link2_com = (LINK2_MASS * LINK2_LENGTH / 2.0 + TIP_MASS * LINK2_LENGTH) / link2_mass;
+    let (link2_mass, link2_com) = link2_mass_and_centre();
     let coupling = knee + link2_mass * LINK1_LENGTH * link2_com * q2.cos();
     let determinant = shoulder * knee - coupling * coupling;
     [
@@ -685,8 +690,7 @@ fn joint_inertias(q2: f32) -> [f32; 2] {
     };
     let tip = TIP_MASS * (2.0 * TIP_HALF_EXTENT).powi(2) / 6.0;
     // Link 2 (capsule centred at l2/2, tip at l2) about the knee.
-    let link2_mass = LINK2_MASS + TIP_MASS;
-    let link2_com = (LINK2_MASS * LINK2_LENGTH / 2.0 + TIP_MASS * LINK2_LENGTH) / link2_mass;
+    let (link2_mass, link2_com) = link2_mass_and_centre();
     let link2_about_com = capsule(LINK2_MASS, LINK2_LENGTH)
         + LINK2_MASS * (LINK2_LENGTH / 2.0 - link2_com).powi(2)
         + tip
