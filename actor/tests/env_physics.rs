@@ -458,4 +458,9 @@ fn roll_pushes_tip_the_crawler_sideways_and_only_when_asked() {
     assert!(rolls.iter().all(|&r| r < 60.0), "a 3 rad/s push on a still crawler does not roll it over: {rolls:?}");
     assert_ne!(rolls[0], rolls[1], "each crawler draws its own pushes");
     assert_eq!(roll_of(pushed.clone(), 2), rolls[2], "and the same seed the same ones");
+    // `eval --perturbed` (and the transfer preset's best-checkpoint choice) must show a gait's
+    // roll instability, the study's model's failure, so its physics pushes too.
+    let evaluated: Vec<f32> = (0..4).map(|seed| roll_of(Randomization::EVAL_PERTURBATIONS, seed)).collect();
+    assert!(evaluated.iter().any(|&r| r > 0.5), "eval --perturbed rolls a still crawler: {evaluated:?}°");
+    assert!(evaluated.iter().all(|&r| r < 60.0), "but does not roll it over: {evaluated:?}°");
 }

@@ -23,6 +23,10 @@ Run through scripts/mujoco-check, which installs the pinned MuJoCo into a cached
                      the same torques for --horizon steps. Prints, per horizon, how far the
                      two engines drift apart (base tilt, joint angles, rates), and what this
                      engine does from the states where MuJoCo's base is about to tip over.
+  solvers            a square-wave gait on the study's model under each of MuJoCo's solvers
+                     (the model's PGS, Newton, CG, PGS with elliptic cones): speed, flips
+                     and how far the base rolls. Shows whether a gait's roll comes from the
+                     solver's asymmetry (PGS only) or from the dynamics (every solver).
 
 No torch: checkpoints are read with safetensors and run by a numpy MLP.
 """
@@ -372,9 +376,7 @@ def contact_phase(crawler: Crawler) -> str:
 
 
 def replay(args) -> None:
-    high = [args.gait[1], args.gait[2]]
-    low = [args.gait[3], args.gait[4]]
-    gait = {"period": args.gait[0], "high": high, "low": low, "phase_lag": args.gait[5]}
+    gait = dict(zip(("period", "high", "low", "phase_lag"), gait_from_args(args.gait)))
     crawler = Crawler()
     steps = round(args.seconds / crawler.dt)
     horizon = args.horizon
@@ -507,6 +509,45 @@ def observe(args) -> None:
     print(json.dumps([float(v) for v in crawler.observe(torques)]))
 
 
+def side_tilt_deg(rotation: np.ndarray) -> float:
+    """How far the base's side axis (y, the hinges' axis) tips out of the horizontal, in
+    degrees: a roll onto a side. Unlike an Euler roll it stays 0 when the base pitches over."""
+    return math.degrees(math.asin(max(-1.0, min(1.0, float(rotation[2, 1])))))
+
+
+def solvers(args) -> None:
+    gait = dict(zip(("period", "high", "low", "phase_lag"), gait_from_args(args.gait)))
+    variants = {
+        "pgs (the model's)": {},
+        "newton": {"solver": mujoco.mjtSolver.mjSOL_NEWTON},
+        "cg": {"solver": mujoco.mjtSolver.mjSOL_CG},
+        "pgs, elliptic cones": {"cone": mujoco.mjtCone.mjCONE_ELLIPTIC},
+    }
+    for name, options in variants.items():
+        crawler = Crawler()
+        for key, value in options.items():
+            setattr(crawler.model.opt, key, value)
+        crawler.reset(args.start[0] * DEG, args.start[1] * DEG)
+        rolls = []
+        for s in range(round(args.seconds / crawler.dt)):
+            crawler.step(square_wave(gait, s * crawler.dt))
+            rolls.append(abs(side_tilt_deg(crawler.rotation())))
+        after_1s = rolls[min(round(1.0 / crawler.dt), len(rolls)) - 1]
+        print(json.dumps({
+            "solver": name,
+            "speed": crawler.distance(1.0) / args.seconds,
+            "flips": crawler.flips,
+            "max_side_tilt_deg": max(rolls),
+            "mean_side_tilt_deg": float(np.mean(rolls)),
+            "side_tilt_after_1s_deg": after_1s,
+        }))
+
+
+def gait_from_args(values) -> tuple:
+    period, high1, high2, low1, low2, lag = values
+    return period, [high1, high2], [low1, low2], lag
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     commands = parser.add_subparsers(dest="command", required=True)
@@ -543,6 +584,15 @@ def main() -> None:
     replay_parser.add_argument("--lift", type=float, default=0.0, help="start this high in the air (m): no contacts")
     replay_parser.add_argument("overrides", nargs="*", help="env settings KEY=VALUE for this engine")
     replay_parser.set_defaults(run=replay)
+    solvers_parser = commands.add_parser("solvers", help="a square wave under each of MuJoCo's solvers: rolls")
+    solvers_parser.add_argument(
+        "--gait", type=float, nargs=6, default=[0.3, -1.0, 1.0, 0.0, -1.0, 0.0],
+        metavar=("PERIOD", "HIGH1", "HIGH2", "LOW1", "LOW2", "LAG"),
+        help="the square wave (default: the issue's tumbling gait)",
+    )
+    solvers_parser.add_argument("--start", type=float, nargs=2, default=[-22.5, 11.25], metavar=("Q1_DEG", "Q2_DEG"))
+    solvers_parser.add_argument("--seconds", type=float, default=10.0)
+    solvers_parser.set_defaults(run=solvers)
     args = parser.parse_args()
     args.run(args)
 

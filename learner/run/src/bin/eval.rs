@@ -27,8 +27,9 @@ struct Args {
     #[arg(long, default_value_t = EVAL_SEED)]
     seed: u64,
     /// Evaluate under perturbed physics, drawn per episode: ±30 % friction, ±20 % masses,
-    /// motors at 80–100 %, joint limits from nearly rigid (0.01 s) to soft (0.1 s), 0–4 ms of
-    /// latency (`Randomization::EVAL_PERTURBATIONS`; the report lists them).
+    /// motors at 80–100 %, joint limits from twice as stiff (0.01 s) to twice as soft (0.04 s)
+    /// as MuJoCo's, 0–4 ms of latency, a roll push of up to 2.5 rad/s every second
+    /// (`Randomization::EVAL_PERTURBATIONS`; the report lists them).
     #[arg(long)]
     perturbed: bool,
     /// Override an env setting of the checkpoint's config, e.g. --set env.direction=backward.
