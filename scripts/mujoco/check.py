@@ -376,7 +376,7 @@ def contact_phase(crawler: Crawler) -> str:
 
 
 def replay(args) -> None:
-    gait = dict(zip(("period", "high", "low", "phase_lag"), gait_from_args(args.gait)))
+    gait = gait_from_args(args.gait)
     crawler = Crawler()
     steps = round(args.seconds / crawler.dt)
     horizon = args.horizon
@@ -516,7 +516,7 @@ def side_tilt_deg(rotation: np.ndarray) -> float:
 
 
 def solvers(args) -> None:
-    gait = dict(zip(("period", "high", "low", "phase_lag"), gait_from_args(args.gait)))
+    gait = gait_from_args(args.gait)
     variants = {
         "pgs (the model's)": {},
         "newton": {"solver": mujoco.mjtSolver.mjSOL_NEWTON},
@@ -528,24 +528,25 @@ def solvers(args) -> None:
         for key, value in options.items():
             setattr(crawler.model.opt, key, value)
         crawler.reset(args.start[0] * DEG, args.start[1] * DEG)
-        rolls = []
+        tilts = []
         for s in range(round(args.seconds / crawler.dt)):
             crawler.step(square_wave(gait, s * crawler.dt))
-            rolls.append(abs(side_tilt_deg(crawler.rotation())))
-        after_1s = rolls[min(round(1.0 / crawler.dt), len(rolls)) - 1]
+            tilts.append(abs(side_tilt_deg(crawler.rotation())))
+        after_1s = tilts[min(round(1.0 / crawler.dt), len(tilts)) - 1]
         print(json.dumps({
             "solver": name,
             "speed": crawler.distance(1.0) / args.seconds,
             "flips": crawler.flips,
-            "max_side_tilt_deg": max(rolls),
-            "mean_side_tilt_deg": float(np.mean(rolls)),
+            "max_side_tilt_deg": max(tilts),
+            "mean_side_tilt_deg": float(np.mean(tilts)),
             "side_tilt_after_1s_deg": after_1s,
         }))
 
 
-def gait_from_args(values) -> tuple:
+def gait_from_args(values) -> dict:
+    """The square wave of a --gait PERIOD HIGH1 HIGH2 LOW1 LOW2 LAG argument."""
     period, high1, high2, low1, low2, lag = values
-    return period, [high1, high2], [low1, low2], lag
+    return {"period": period, "high": [high1, high2], "low": [low1, low2], "phase_lag": lag}
 
 
 def main() -> None:
