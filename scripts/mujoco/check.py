@@ -26,7 +26,8 @@ Run through scripts/mujoco-check, which installs the pinned MuJoCo into a cached
   solvers            a square-wave gait on the study's model under each of MuJoCo's solvers
                      (the model's PGS, Newton, CG, PGS with elliptic cones): speed, flips
                      and how far the base rolls. Shows whether a gait's roll comes from the
-                     solver's asymmetry (PGS only) or from the dynamics (every solver).
+                     solver's uneven contact solve (Newton keeps the crawler in its plane) or
+                     from the gait's dynamics (every solver rolls it).
 
 No torch: checkpoints are read with safetensors and run by a numpy MLP.
 """
