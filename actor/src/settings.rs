@@ -148,6 +148,7 @@ impl From<&EnvConfig> for proto::EnvSettings {
             min_progress_per_step: env.min_progress_per_step,
             sliding_base: env.sliding_base,
             solver_iterations: env.solver_iterations,
+            contact_prediction: env.contact_prediction,
             start_joint1_deg: env.start_joint1_deg.to_vec(),
             start_joint2_deg: env.start_joint2_deg.to_vec(),
             joint_limit_timeconst: env.joint_limit_timeconst,
@@ -219,6 +220,7 @@ impl TryFrom<&proto::EnvSettings> for EnvConfig {
             min_progress_per_step: env.min_progress_per_step,
             sliding_base: env.sliding_base,
             solver_iterations: env.solver_iterations,
+            contact_prediction: env.contact_prediction,
             start_joint1_deg: pair(&env.start_joint1_deg, "env.start_joint1_deg")?,
             start_joint2_deg: pair(&env.start_joint2_deg, "env.start_joint2_deg")?,
             joint_limit_timeconst: env.joint_limit_timeconst,
@@ -294,6 +296,7 @@ mod tests {
         settings.env.action_repeat = 10;
         settings.env.max_tilt_deg = 60.0;
         settings.env.tilt_rate_penalty = 0.02;
+        settings.env.contact_prediction = 0.004;
         settings.env.joint_limit_timeconst = 0.03;
         settings.env.randomization.latency_steps = [0, 2];
         settings.env.randomization.push_interval_s = 1.5;

@@ -326,6 +326,10 @@ fn bad_settings_are_rejected_by_name() {
         let bad = EnvConfig { tilt_rate_penalty: penalty, ..EnvConfig::default() };
         assert!(bad.validate().unwrap_err().to_string().contains("env.tilt_rate_penalty"), "{penalty}");
     }
+    for distance in [-0.001, f32::NAN, f32::INFINITY, 0.1] {
+        let bad = EnvConfig { contact_prediction: distance, ..EnvConfig::default() };
+        assert!(bad.validate().unwrap_err().to_string().contains("env.contact_prediction"), "{distance}");
+    }
     assert!(EnvConfig::default().validate().is_ok());
 }
 
@@ -451,7 +455,10 @@ fn roll_pushes_tip_the_crawler_sideways_and_only_when_asked() {
         }
         largest
     };
-    assert!(roll_of(Randomization::default(), 3) < 0.01, "no pushes: the crawler stays in its plane");
+    let unpushed = roll_of(Randomization::default(), 3);
+    // Round-off in rapier's sequential contact solve rolls a still crawler by hundredths of a
+    // degree at most; a push rolls it by degrees.
+    assert!(unpushed < 0.05, "no pushes: the crawler stays in its plane: {unpushed}°");
     let pushed = Randomization { push_interval_s: 0.5, push_roll_rate: 3.0, ..Randomization::default() };
     let rolls: Vec<f32> = (0..4).map(|seed| roll_of(pushed.clone(), seed)).collect();
     assert!(rolls.iter().all(|&r| r > 0.5), "every crawler is rolled by its pushes: {rolls:?}");

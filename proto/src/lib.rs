@@ -27,7 +27,10 @@ pub use validate::{ProtoError, SequenceTracker, TransitionLimits};
 /// 6: the physics randomisation carries roll pushes (`RandomizationSettings.push_interval_s`,
 ///    `push_roll_rate`), and the joint limits follow MuJoCo's formula; an older actor would
 ///    simulate other physics.
-pub const PROTOCOL_VERSION: u32 = 6;
+/// 7: the env settings carry the contact prediction distance
+///    (`EnvSettings.contact_prediction`), whose default changed from rapier's 0.02 m to 0; an
+///    older actor would simulate other physics.
+pub const PROTOCOL_VERSION: u32 = 7;
 
 /// Largest encoded message a node accepts, in bytes. The largest legal messages: a batch of
 /// [`MAX_BATCH_TRANSITIONS`] transitions of 40 values (about 1.4 MB) and the weights of a

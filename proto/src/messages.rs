@@ -164,6 +164,9 @@ pub struct EnvSettings {
     /// Weight of the penalty on the base's rocking; 0: none (the study's reward).
     #[prost(float, tag = "16")]
     pub tilt_rate_penalty: f32,
+    /// Distance in metres within which shapes get a contact; 0: from penetration on.
+    #[prost(float, tag = "17")]
+    pub contact_prediction: f32,
 }
 
 /// Ranges drawn once per episode (`crawler_actor::env::Randomization` documents each); every

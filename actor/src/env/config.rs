@@ -49,6 +49,13 @@ pub struct EnvConfig {
     pub sliding_base: bool,
     /// rapier's solver iterations per step.
     pub solver_iterations: u32,
+    /// How close, in metres, two shapes must come before rapier makes a contact between them
+    /// (its `prediction_distance`). rapier's own default, 0.02 m, makes speculative contacts:
+    /// a landing is felt a step before the shapes touch. The study's MuJoCo model makes a
+    /// contact only once shapes penetrate (geom margin 0), so 0 is the faithful value: it
+    /// halves the one-step error of `scripts/mujoco-check replay` from airborne states
+    /// (EXPERIMENTS.md, "Session 13").
+    pub contact_prediction: f32,
     /// Range in degrees from which joint 1's start angle is drawn uniformly.
     pub start_joint1_deg: [f32; 2],
     /// Range in degrees from which joint 2's start angle is drawn uniformly; the draw is
@@ -89,6 +96,7 @@ impl Default for EnvConfig {
             min_progress_per_step: 1e-4,
             sliding_base: false,
             solver_iterations: 4,
+            contact_prediction: 0.0,
             start_joint1_deg: [-45.0, 0.0],
             start_joint2_deg: [-22.5, 22.5],
             joint_limit_timeconst: 0.02,
@@ -143,6 +151,13 @@ impl EnvConfig {
         check(progress.is_finite() && progress >= 0.0, "min_progress_per_step", progress, "a finite number ≥ 0")?;
         let iters = self.solver_iterations;
         check((1..=100).contains(&iters), "solver_iterations", iters, "an integer in 1..=100")?;
+        let prediction = self.contact_prediction;
+        check(
+            prediction.is_finite() && (0.0..=0.05).contains(&prediction),
+            "contact_prediction",
+            prediction,
+            "a distance in [0, 0.05] m; 0: contacts from penetration on, as MuJoCo's",
+        )?;
         let timeconst = self.joint_limit_timeconst;
         check(
             timeconst.is_finite() && (timeconst == 0.0 || (0.001..=1.0).contains(&timeconst)),

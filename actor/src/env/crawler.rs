@@ -781,6 +781,8 @@ fn build_world(config: &EnvConfig, physics: &EpisodePhysics, q1: f32, q2: f32) -
     let integration_parameters = IntegrationParameters {
         dt: config.dt,
         num_solver_iterations: config.solver_iterations as usize,
+        // length_unit is 1 (metres), so the normalized distance is the distance.
+        normalized_prediction_distance: config.contact_prediction,
         ..IntegrationParameters::default()
     };
     let mut world =

@@ -15,7 +15,7 @@ pub struct SquareWaveGait {
 
 impl SquareWaveGait {
     /// A gait that crawls forward, upright, in this engine and on the study's MuJoCo model
-    /// alike (0.20 and 0.12 m/s over the gait bank's three starts, no flips in either:
+    /// alike (0.24 and 0.12 m/s over the gait bank's three starts, no flips in either:
     /// `scripts/mujoco-check gaits`). A half-strength knee keeps the base down.
     pub const FORWARD: SquareWaveGait =
         SquareWaveGait { period: 0.3, high: [-1.0, 0.5], low: [0.0, -0.5], phase_lag: 0.0 };

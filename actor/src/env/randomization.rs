@@ -34,8 +34,9 @@ pub struct Randomization {
     pub observation_noise: f32,
     /// Seconds between pushes that roll the whole crawler about its base's own x axis, as
     /// legged_gym's `push_robots` (0: never). On the study's model the fast gaits fail by
-    /// rolling onto a side; this engine keeps a symmetric crawler in its plane, so without
-    /// pushes a policy never meets a roll (EXPERIMENTS.md, "State replay").
+    /// rolling onto a side; this engine rolls the symmetric crawler far less (the tumbling
+    /// square wave: 0.3–5° of side tilt after 1 s here, 38° there), so without pushes a
+    /// policy seldom meets a roll (EXPERIMENTS.md, "State replay" and "Session 13").
     pub push_interval_s: f32,
     /// Largest roll rate a push adds, rad/s; each push draws uniformly from ±this.
     pub push_roll_rate: f32,

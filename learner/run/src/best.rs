@@ -59,6 +59,11 @@ pub struct Evaluation {
     /// Whether the episodes ran `eval --perturbed`'s physics.
     #[serde(default)]
     pub perturbed: bool,
+    /// The perturbations they ran under (absent: nominal physics, or a record older than
+    /// this field). `eval --perturbed`'s set has changed (session 12 added roll pushes), so a
+    /// resumed run compares against an old best only if it was measured under the same set.
+    #[serde(default)]
+    pub perturbations: Option<Randomization>,
     pub mean_speed: f64,
     pub min_speed: f64,
     pub flips: u32,
@@ -91,13 +96,27 @@ pub struct EvaluationPlan {
     pub perturbed: bool,
 }
 
+impl EvaluationPlan {
+    /// The perturbations the plan's episodes run under; `None`: the nominal physics.
+    pub fn perturbations(&self) -> Option<Randomization> {
+        self.perturbed.then_some(Randomization::EVAL_PERTURBATIONS)
+    }
+
+    /// Whether `evaluation` was measured as this plan measures, so the two compare.
+    fn measured(&self, evaluation: &Evaluation) -> bool {
+        (evaluation.episodes, evaluation.seconds, evaluation.perturbed) == (self.episodes, self.seconds, self.perturbed)
+            && evaluation.perturbations == self.perturbations()
+    }
+}
+
 /// Greedy episodes of the checkpoint at `path` with `eval`'s seeds, as `plan` says.
 pub fn evaluate_checkpoint(path: &Path, plan: EvaluationPlan) -> Result<Evaluation, EvaluateError> {
     let EvaluationPlan { episodes, seconds, perturbed } = plan;
     let loaded = load_policy(path, &[])?;
     let mut env = evaluation_env(&loaded.config.env, seconds)?;
-    if perturbed {
-        env.randomization = Randomization::EVAL_PERTURBATIONS;
+    let perturbations = plan.perturbations();
+    if let Some(perturbations) = &perturbations {
+        env.randomization = perturbations.clone();
     }
     let mut speeds = Vec::with_capacity(episodes as usize);
     let mut flips = 0;
@@ -114,6 +133,7 @@ pub fn evaluate_checkpoint(path: &Path, plan: EvaluationPlan) -> Result<Evaluati
         episodes,
         seconds,
         perturbed,
+        perturbations,
         mean_speed: speeds.iter().sum::<f64>() / speeds.len().max(1) as f64,
         min_speed: speeds.iter().copied().fold(f64::INFINITY, f64::min),
         flips,
@@ -132,14 +152,14 @@ pub struct BestKeeper {
 impl BestKeeper {
     /// A keeper for the run whose checkpoints live in `checkpoints`. A best checkpoint already
     /// there (a resumed run) is the one to beat.
-    /// A best evaluated with another plan is not comparable: it is replaced by the first
-    /// candidate.
+    /// A best evaluated with another plan, or under another set of perturbations, is not
+    /// comparable: it is replaced by the first candidate.
     pub fn new(checkpoints: &Path, plan: EvaluationPlan) -> Self {
         let record = checkpoints.join(BEST_DIR).join(EVALUATION_FILE);
         let best = fs::read(&record)
             .ok()
             .and_then(|bytes| serde_json::from_slice::<Evaluation>(&bytes).ok())
-            .filter(|e| (e.episodes, e.seconds, e.perturbed) == (plan.episodes, plan.seconds, plan.perturbed));
+            .filter(|e| plan.measured(e));
         Self { checkpoints: checkpoints.to_path_buf(), plan, best }
     }
 
@@ -214,6 +234,7 @@ mod tests {
             episodes: 5,
             seconds: 20.0,
             perturbed: false,
+            perturbations: None,
             mean_speed,
             min_speed: 0.0,
             flips,
@@ -232,5 +253,30 @@ mod tests {
         assert!(!evaluation(0.3, 0, 0).beats(&clean));
         assert!(!evaluation(0.4, 0, 0).beats(&clean));
         assert!(evaluation(0.2, 1, 0).beats(&evaluation(0.1, 0, 2)));
+    }
+
+    #[test]
+    fn a_resumed_run_keeps_an_old_best_only_if_it_was_measured_the_same_way() {
+        let checkpoints = tempfile::tempdir().unwrap();
+        let best = checkpoints.path().join(BEST_DIR);
+        fs::create_dir_all(&best).unwrap();
+        let plan = EvaluationPlan { episodes: 5, seconds: 20.0, perturbed: true };
+        let kept_with = |recorded: &Evaluation| {
+            fs::write(best.join(EVALUATION_FILE), serde_json::to_vec(recorded).unwrap()).unwrap();
+            BestKeeper::new(checkpoints.path(), plan).best().cloned()
+        };
+        let same = Evaluation { perturbed: true, perturbations: plan.perturbations(), ..evaluation(0.5, 0, 0) };
+        assert_eq!(kept_with(&same), Some(same.clone()));
+        // Measured before eval --perturbed pushed: the record has no perturbation set.
+        let older = Evaluation { perturbations: None, ..same.clone() };
+        assert_eq!(kept_with(&older), None, "a best measured under other perturbations is not comparable");
+        let other_set = Randomization { push_roll_rate: 0.0, ..Randomization::EVAL_PERTURBATIONS };
+        assert_eq!(kept_with(&Evaluation { perturbations: Some(other_set), ..same.clone() }), None);
+        assert_eq!(kept_with(&Evaluation { episodes: 10, ..same }), None, "nor one of another episode count");
+        // A record written before the field existed still parses (as no perturbation set).
+        let mut legacy = serde_json::to_value(&older).unwrap();
+        legacy.as_object_mut().unwrap().remove("perturbations");
+        let parsed: Evaluation = serde_json::from_value(legacy).unwrap();
+        assert_eq!(parsed, older);
     }
 }

@@ -595,6 +595,7 @@ mod tests {
             ("dqn.adam_eps=0.0", "dqn.adam_eps"),
             ("env.max_tilt_deg=0.0", "env.max_tilt_deg"),
             ("env.max_tilt_deg=nan", "env.max_tilt_deg"),
+            ("env.contact_prediction=nan", "env.contact_prediction"),
         ] {
             let err = TrainConfig::from_toml("", "test", &[assignment.into()]).unwrap_err().to_string();
             assert!(err.contains(key), "{assignment}: {err}");
