@@ -43,8 +43,10 @@ impl Default for NetworkSection {
 pub struct DqnConfig {
     /// Discount factor γ.
     pub gamma: f64,
-    /// Adam's learning rate.
+    /// Adam's learning rate (at the start, where `lr_decay` is set).
     pub lr: f64,
+    /// Anneal the learning rate linearly to a final value; a constant `lr` when absent.
+    pub lr_decay: Option<LrDecay>,
     pub adam_eps: f64,
     /// Double DQN (the online net picks the next action, the target net values it);
     /// false gives vanilla DQN (the target net's max).
@@ -67,6 +69,7 @@ impl Default for DqnConfig {
         Self {
             gamma: 0.99,
             lr: 5e-4,
+            lr_decay: None,
             adam_eps: 1e-8,
             double: true,
             loss: LossKind::Mse,
@@ -77,6 +80,32 @@ impl Default for DqnConfig {
             seed: 0,
         }
     }
+}
+
+impl DqnConfig {
+    /// Adam's learning rate for the update that follows `updates` done ones.
+    pub fn learning_rate(&self, updates: u64) -> f64 {
+        match self.lr_decay {
+            None => self.lr,
+            Some(LrDecay { final_lr, updates: over }) => {
+                let progress = (updates as f64 / over.max(1) as f64).min(1.0);
+                self.lr + (final_lr - self.lr) * progress
+            }
+        }
+    }
+}
+
+/// A linear learning-rate anneal (CleanRL's and SB3's schedules): from `lr` to `final_lr`
+/// over the first `updates` gradient updates of this learner's optimiser, then constant. It
+/// counts the updates of the run (a resumed run continues the schedule; `--init-from` starts
+/// it afresh), not wall time, so a run's schedule is the same on a fast machine and a slow one.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct LrDecay {
+    /// The learning rate once the anneal is over.
+    pub final_lr: f64,
+    /// Updates over which the rate falls.
+    pub updates: u64,
 }
 
 /// How the TD error becomes a loss.
@@ -353,6 +382,14 @@ impl TrainConfig {
         if !(d.lr.is_finite() && d.lr > 0.0 && d.lr < 1.0) {
             return Err(invalid("dqn.lr", d.lr.to_string(), "a number in (0, 1)"));
         }
+        if let Some(LrDecay { final_lr, updates }) = d.lr_decay {
+            if !(final_lr.is_finite() && final_lr > 0.0 && final_lr <= d.lr) {
+                return Err(invalid("dqn.lr_decay.final_lr", final_lr.to_string(), "a number in (0, dqn.lr]"));
+            }
+            if updates == 0 {
+                return Err(invalid("dqn.lr_decay.updates", "0".into(), "at least 1"));
+            }
+        }
         if !(d.reward_scale.is_finite() && d.reward_scale > 0.0) {
             return Err(invalid("dqn.reward_scale", d.reward_scale.to_string(), "a positive number"));
         }
@@ -551,6 +588,31 @@ mod tests {
         assert_eq!(TrainConfig::from_json(&json, "test", &[]).unwrap(), config);
         let missing = TrainConfig::load(Path::new("/no/such/config.toml"), &[]).unwrap_err().to_string();
         assert!(missing.contains("/no/such/config.toml"), "{missing}");
+    }
+
+    /// The learning rate falls linearly from `lr` to `lr_decay.final_lr` over its updates,
+    /// then stays; a decay that would raise the rate, or take no updates, is refused by name.
+    #[test]
+    fn a_learning_rate_decay_anneals_linearly_then_holds() {
+        let overrides = ["dqn.lr=4e-4".into(), "dqn.lr_decay={ final_lr = 1e-4, updates = 1000 }".into()];
+        let config = TrainConfig::from_toml("", "test", &overrides).unwrap();
+        let rate = |updates| config.dqn.learning_rate(updates);
+        assert!((rate(0) - 4e-4).abs() < 1e-12);
+        assert!((rate(500) - 2.5e-4).abs() < 1e-12, "{}", rate(500));
+        assert!((rate(1000) - 1e-4).abs() < 1e-12);
+        assert!((rate(50_000) - 1e-4).abs() < 1e-12);
+        assert_eq!(DqnConfig::default().learning_rate(123_456), DqnConfig::default().lr);
+
+        for (decay, key) in [
+            ("{ final_lr = 1e-3, updates = 1000 }", "dqn.lr_decay.final_lr"),
+            ("{ final_lr = nan, updates = 1000 }", "dqn.lr_decay.final_lr"),
+            ("{ final_lr = 0.0, updates = 1000 }", "dqn.lr_decay.final_lr"),
+            ("{ final_lr = 1e-4, updates = 0 }", "dqn.lr_decay.updates"),
+        ] {
+            let overrides = ["dqn.lr=4e-4".into(), format!("dqn.lr_decay={decay}")];
+            let err = TrainConfig::from_toml("", "test", &overrides).unwrap_err().to_string();
+            assert!(err.contains(key), "{decay}: {err}");
+        }
     }
 
     /// Every preset a user may pass loads and validates, and every knob in it says what it

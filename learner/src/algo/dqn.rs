@@ -1,7 +1,7 @@
 //! The Double DQN update: TD targets, loss, Adam and target-network upkeep.
 
 use crawler_actor::policy::{NetworkSpec, argmax, q_values_of_params};
-pub use crawler_run::config::{DqnConfig, LossKind, TargetUpdate};
+pub use crawler_run::config::{DqnConfig, LossKind, LrDecay, TargetUpdate};
 use tch::{Kind, Reduction, Tensor};
 
 use super::adam::{AdamConfig, FlatAdam};
@@ -139,6 +139,7 @@ impl Dqn {
             Some(max) if grad_norm > max => (max / (grad_norm + 1e-6)) as f32,
             _ => 1.0,
         };
+        self.optimizer.config.lr = self.config.learning_rate(self.updates);
         self.optimizer.step(self.online.flat_mut(), &grad, grad_scale);
         self.updates += 1;
         match self.config.target_update {

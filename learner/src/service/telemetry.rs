@@ -80,9 +80,11 @@ impl Telemetry {
         })
     }
 
-    pub(super) fn record_update(&mut self, loss: f64, mean_q: f64) {
+    /// Records an applied update's loss and mean Q, and the learning rate it was made with.
+    pub(super) fn record_update(&mut self, loss: f64, mean_q: f64, learning_rate: f64) {
         self.last_loss = (loss, mean_q);
         self.losses.add(loss, mean_q);
+        self.losses.learning_rate = learning_rate;
     }
 
     /// Called on every turn of the training loop: writes metrics and status when due.
@@ -155,7 +157,11 @@ impl Telemetry {
         let losses = std::mem::take(&mut self.losses);
         if losses.count > 0 {
             let n = losses.count as f64;
-            let scalars = [("train/loss", losses.loss / n), ("train/mean_q", losses.mean_q / n)];
+            let scalars = [
+                ("train/loss", losses.loss / n),
+                ("train/mean_q", losses.mean_q / n),
+                ("train/learning_rate", losses.learning_rate),
+            ];
             if let Err(e) = metrics.write(train_seconds, env_steps, &scalars) {
                 warn!("metrics: {e}");
             }
@@ -166,11 +172,13 @@ impl Telemetry {
     }
 }
 
-/// TD loss and mean Q, averaged between metric writes.
+/// TD loss and mean Q, averaged between metric writes, and the latest update's learning rate
+/// (it changes under `dqn.lr_decay`).
 #[derive(Debug, Default)]
 struct LossAverage {
     loss: f64,
     mean_q: f64,
+    learning_rate: f64,
     count: u64,
 }
 

@@ -226,7 +226,7 @@ impl<'a> Trainer<'a> {
             return;
         }
         self.progress.updates += 1;
-        self.telemetry.record_update(stats.loss, stats.mean_q);
+        self.telemetry.record_update(stats.loss, stats.mean_q, self.dqn.optimizer.config.lr);
         if self.progress.updates.is_multiple_of(self.config.learner.weights_every) {
             self.publish();
         }

@@ -173,3 +173,35 @@ fn an_update_reduces_the_loss_and_hard_target_updates_copy_on_schedule() {
         assert!(last.loss < first.loss, "{loss:?}: {} -> {}", first.loss, last.loss);
     }
 }
+
+/// Under `dqn.lr_decay` the optimiser steps with the annealed rate: after the decay's one
+/// update, a step moves the weights about 100× less than the same step at the constant rate.
+#[test]
+fn a_learning_rate_decay_shrinks_the_optimiser_steps() {
+    use crawler_learner::algo::dqn::LrDecay;
+    let batch = || Batch {
+        observations: Tensor::randn([32, 40], (Kind::Float, tch::Device::Cpu)),
+        actions: Tensor::randint(25, [32], (Kind::Int64, tch::Device::Cpu)),
+        returns: Tensor::ones([32], (Kind::Float, tch::Device::Cpu)),
+        next_observations: Tensor::randn([32, 40], (Kind::Float, tch::Device::Cpu)),
+        discounts: Tensor::zeros([32], (Kind::Float, tch::Device::Cpu)),
+        weights: None,
+    };
+    tch::manual_seed(7);
+    let batches = [batch(), batch()];
+    let second_step = |lr_decay| {
+        let config = DqnConfig { lr: 1e-3, lr_decay, ..DqnConfig::default() };
+        let mut dqn = Dqn::new(small(), config);
+        dqn.update(&batches[0]);
+        let before: Tensor = dqn.online.flat().copy();
+        dqn.update(&batches[1]);
+        let moved = (dqn.online.flat().detach() - before).abs().max().double_value(&[]);
+        (moved, dqn.optimizer.config.lr)
+    };
+    let (constant, constant_lr) = second_step(None);
+    let (decayed, decayed_lr) = second_step(Some(LrDecay { final_lr: 1e-5, updates: 1 }));
+    assert_eq!(constant_lr, 1e-3);
+    assert_eq!(decayed_lr, 1e-5);
+    assert!(constant > 1e-4, "a constant-rate step moved the weights by at most {constant}");
+    assert!(decayed < 0.05 * constant, "decayed step {decayed} against constant {constant}");
+}

@@ -62,6 +62,7 @@ fn a_run_writes_metrics_that_plot_and_render_turn_into_pictures() {
         "episode/speed",
         "train/loss",
         "train/mean_q",
+        "train/learning_rate",
         "throughput/env_steps_per_s",
         "throughput/updates_per_s",
         "replay/size",
