@@ -87,8 +87,9 @@ impl DqnConfig {
     pub fn learning_rate(&self, updates: u64) -> f64 {
         match self.lr_decay {
             None => self.lr,
+            Some(LrDecay { final_lr, updates: over }) if updates >= over => final_lr,
             Some(LrDecay { final_lr, updates: over }) => {
-                let progress = (updates as f64 / over.max(1) as f64).min(1.0);
+                let progress = updates as f64 / over.max(1) as f64;
                 self.lr + (final_lr - self.lr) * progress
             }
         }
