@@ -89,7 +89,8 @@ impl DqnConfig {
             None => self.lr,
             Some(LrDecay { final_lr, updates: over }) if updates >= over => final_lr,
             Some(LrDecay { final_lr, updates: over }) => {
-                let progress = updates as f64 / over.max(1) as f64;
+                // The arm above took updates ≥ over, so over ≥ 1 here.
+                let progress = updates as f64 / over as f64;
                 self.lr + (final_lr - self.lr) * progress
             }
         }
