@@ -239,7 +239,7 @@ pub fn save(
 
     fail::fail_point!(FAIL_BEFORE_RENAME);
     if final_path.exists() {
-        fs::remove_dir_all(&final_path).map_err(io("replace", &final_path))?;
+        remove_atomically(&final_path)?;
     }
     fs::rename(&temp, &final_path).map_err(io("rename into place", &final_path))?;
     if let Ok(parent) = fs::File::open(dir) {
@@ -326,12 +326,23 @@ pub fn latest(dir: &Path) -> Result<PathBuf, CheckpointError> {
     list(dir)?.pop().ok_or_else(|| CheckpointError::NotFound(dir.to_path_buf()))
 }
 
+/// Removes the checkpoint `path` so that a reader sees it whole or not at all: it is renamed
+/// out of the listing in one step (a name [`list`] skips), then deleted. Deleting in place
+/// would let a reader find `meta.json` while the files it names are already gone.
+fn remove_atomically(path: &Path) -> Result<(), CheckpointError> {
+    let mut doomed = path.as_os_str().to_owned();
+    doomed.push(format!("{TEMP_MARKER}{}.removed", std::process::id()));
+    let doomed = PathBuf::from(doomed);
+    fs::rename(path, &doomed).map_err(io("move out of the way", path))?;
+    fs::remove_dir_all(&doomed).map_err(io("remove", &doomed))
+}
+
 /// Removes all but the newest `keep` checkpoints, and leftovers of interrupted writes.
 fn prune(dir: &Path, keep: usize) -> Result<(), CheckpointError> {
     let complete = list(dir)?;
     let excess = complete.len().saturating_sub(keep.max(1));
     for old in &complete[..excess] {
-        fs::remove_dir_all(old).map_err(io("remove", old))?;
+        remove_atomically(old)?;
     }
     let own = format!("{TEMP_MARKER}{}", std::process::id());
     for entry in fs::read_dir(dir).map_err(io("read", dir))?.filter_map(Result::ok) {
@@ -343,10 +354,42 @@ fn prune(dir: &Path, keep: usize) -> Result<(), CheckpointError> {
     Ok(())
 }
 
+/// How often [`load`] takes the newest checkpoint again when the one it was reading was
+/// pruned or replaced under it. Each retry needs a live learner to finish a whole save during
+/// one read, so a handful is plenty.
+const RELOADS_AFTER_PRUNING: usize = 8;
+
 /// Loads a checkpoint: `path` is a `step-*` directory or a directory of them (the newest is
 /// taken). Every file is checked against the sizes and checksums in `meta.json`.
+///
+/// A directory of checkpoints may belong to a learner that is still running: it prunes the
+/// oldest as it saves, so the newest one listed can vanish (or be replaced by a final
+/// checkpoint of the same step) while it is read. Then the newest is taken again; an error is
+/// reported only for a checkpoint that stayed in place while it failed to load.
 pub fn load(path: &Path) -> Result<Checkpoint, CheckpointError> {
-    let path = if path.join(META).is_file() { path.to_path_buf() } else { latest(path)? };
+    if path.join(META).is_file() {
+        return load_one(path.to_path_buf());
+    }
+    let mut reloads = 0;
+    loop {
+        let newest = latest(path)?;
+        let meta_before = fs::read(newest.join(META)).ok();
+        match load_one(newest.clone()) {
+            Err(error) if reloads < RELOADS_AFTER_PRUNING => {
+                let meta_after = fs::read(newest.join(META)).ok();
+                if meta_before.is_some() && meta_before == meta_after {
+                    return Err(error);
+                }
+                tracing::debug!(checkpoint = %newest.display(), %error, "checkpoint pruned or replaced while read; taking the newest again");
+                reloads += 1;
+            }
+            result => return result,
+        }
+    }
+}
+
+/// Loads the checkpoint in the `step-*` directory `path`.
+fn load_one(path: PathBuf) -> Result<Checkpoint, CheckpointError> {
     let meta_path = path.join(META);
     let meta_bytes = fs::read(&meta_path).map_err(io("read", &meta_path))?;
     let meta: CheckpointMeta = serde_json::from_slice(&meta_bytes).map_err(|e| corrupt(&meta_path, e))?;

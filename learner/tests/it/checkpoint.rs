@@ -141,6 +141,37 @@ fn only_the_newest_are_kept_and_partial_writes_are_ignored() {
 }
 
 #[test]
+fn a_reader_of_a_live_learners_directory_gets_the_newest_checkpoint_while_older_ones_are_pruned() {
+    // `eval runs/<run>/checkpoints` beside a learner that saves and prunes (keep 1 here, the
+    // harshest setting): the checkpoint listed as newest is often removed mid-read. Every
+    // read must still load a whole checkpoint, never fail on a file pruned under it.
+    let dir = tempfile::tempdir().unwrap();
+    let dqn = trained(5);
+    checkpoint::save(dir.path(), &dqn, "run", &progress(1), &serde_json::Value::Null, None, 1).unwrap();
+    let saves = 120;
+    let saving = std::sync::atomic::AtomicBool::new(true);
+    let (loads, newest_seen) = std::thread::scope(|scope| {
+        let reader = scope.spawn(|| {
+            let (mut loads, mut newest_seen) = (0_u64, 0_u64);
+            while saving.load(std::sync::atomic::Ordering::Relaxed) || loads == 0 {
+                let loaded = checkpoint::load(dir.path()).unwrap_or_else(|e| panic!("load {loads}: {e}"));
+                assert!(loaded.meta.progress.updates >= newest_seen, "went back in time");
+                newest_seen = loaded.meta.progress.updates;
+                loads += 1;
+            }
+            (loads, newest_seen)
+        });
+        for updates in 2..=saves {
+            checkpoint::save(dir.path(), &dqn, "run", &progress(updates), &serde_json::Value::Null, None, 1).unwrap();
+        }
+        saving.store(false, std::sync::atomic::Ordering::Relaxed);
+        reader.join().unwrap()
+    });
+    assert!(loads >= 1 && newest_seen >= 1, "{loads} loads, newest {newest_seen}");
+    assert_eq!(checkpoint::list(dir.path()).unwrap().len(), 1);
+}
+
+#[test]
 fn the_replay_snapshot_round_trips() {
     let mut replay = Replay::new(ReplayConfig { capacity: 64, n_step: 3, prioritized: None }, 40).unwrap();
     for t in 0..100 {
