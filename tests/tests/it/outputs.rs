@@ -13,7 +13,7 @@ use crawler_learner::checkpoint::{self, Progress};
 use crawler_run::best;
 use crawler_run::config::TrainConfig;
 use crawler_run::metrics;
-use crawler_tests::{Learner, binary, repo_root};
+use crawler_tests::{Learner, binary, free_port, repo_root};
 
 fn run(binary_name: &str, args: &[&str]) -> Output {
     let output = Command::new(binary(binary_name)).current_dir(repo_root()).args(args).output().unwrap();
@@ -220,6 +220,54 @@ fn init_from_copies_another_runs_networks_and_refuses_a_different_one() {
     assert!(!output.status.success());
     let message = String::from_utf8_lossy(&output.stderr);
     assert!(message.contains("--init-from") && message.contains("network"), "{message}");
+}
+
+/// `scripts/train-transfer`, the transfer recipe in one command, on budgets of seconds: the
+/// warm-up trains the default preset, the transfer stage trains the transfer preset from the
+/// warm-up's newest weights with the learning-rate anneal, and both runs leave checkpoints.
+#[test]
+fn the_transfer_recipe_trains_the_transfer_preset_from_the_warm_ups_weights() {
+    let runs = tempfile::tempdir().unwrap();
+    let listen = format!("learner.listen=[\"tcp/127.0.0.1:{}\"]", free_port());
+    let bin_dir = binary("learner").parent().unwrap().to_path_buf();
+    let output = Command::new(repo_root().join("scripts/train-transfer"))
+        .current_dir(repo_root())
+        .args(["recipe", "--", "--set", &listen])
+        .env("CRAWLER_BIN_DIR", &bin_dir)
+        .env("RUNS_DIR", runs.path())
+        .envs([("WARM_SECONDS", "3"), ("TRANSFER_SECONDS", "3"), ("ANNEAL_UPDATES", "1234")])
+        // No MuJoCo venv there: the recipe names the cross-check instead of running it.
+        .env("CRAWLER_MUJOCO_VENV", runs.path().join("no-venv"))
+        .output()
+        .unwrap();
+    let log = String::from_utf8_lossy(&output.stderr);
+    assert!(output.status.success(), "train-transfer failed: {log}");
+
+    let warm = checkpoint::load(&runs.path().join("recipe-warm/checkpoints")).unwrap();
+    let transfer = checkpoint::load(&runs.path().join("recipe/checkpoints")).unwrap();
+    assert_eq!(warm.meta.config["env"]["action_repeat"], 10, "the warm-up is the default preset");
+    assert_eq!(transfer.meta.config["env"]["action_repeat"], 3, "the second stage is the transfer preset");
+    assert_eq!(transfer.meta.config["dqn"]["lr_decay"]["updates"], 1234);
+    assert_eq!(transfer.meta.config["dqn"]["lr_decay"]["final_lr"], 2.5e-5);
+    let from = runs.path().join("recipe-warm/checkpoints");
+    assert!(
+        log.lines().any(|line| line.contains("networks initialised from") && line.contains(&*from.to_string_lossy())),
+        "the transfer stage did not start from the warm-up: {log}"
+    );
+    assert!(log.contains("scripts/mujoco-check eval"), "no pointer to the cross-check: {log}");
+
+    // A misspelt knob is refused before anything trains, naming it.
+    let output = Command::new(repo_root().join("scripts/train-transfer"))
+        .current_dir(repo_root())
+        .arg("never-trained")
+        .env("CRAWLER_BIN_DIR", &bin_dir)
+        .env("RUNS_DIR", runs.path())
+        .env("WARM_SECONDS", "4m")
+        .output()
+        .unwrap();
+    assert_eq!(output.status.code(), Some(2));
+    assert!(String::from_utf8_lossy(&output.stderr).contains("WARM_SECONDS"));
+    assert!(!runs.path().join("never-trained-warm").exists());
 }
 
 /// `scripts/mujoco-check` with `args`, `stdin` piped in; its stdout.
