@@ -568,6 +568,7 @@ impl EpisodeStatsSource<'_> {
             return_position: summary.reward.position,
             return_upright: summary.reward.upright,
             return_tilt_rate: summary.reward.tilt_rate,
+            return_base_impact: summary.reward.base_impact,
             distance: summary.distance,
             duration: summary.duration,
             speed: summary.speed,

@@ -154,6 +154,8 @@ impl From<&EnvConfig> for proto::EnvSettings {
             joint_limit_timeconst: env.joint_limit_timeconst,
             max_tilt_deg: env.max_tilt_deg,
             tilt_rate_penalty: env.tilt_rate_penalty,
+            base_impact_penalty: env.base_impact_penalty,
+            base_impact_threshold: env.base_impact_threshold,
             randomization: env.randomization.is_active().then(|| {
                 let r = &env.randomization;
                 proto::RandomizationSettings {
@@ -226,6 +228,8 @@ impl TryFrom<&proto::EnvSettings> for EnvConfig {
             joint_limit_timeconst: env.joint_limit_timeconst,
             max_tilt_deg: env.max_tilt_deg,
             tilt_rate_penalty: env.tilt_rate_penalty,
+            base_impact_penalty: env.base_impact_penalty,
+            base_impact_threshold: env.base_impact_threshold,
             randomization: env.randomization.as_ref().map(Randomization::try_from).transpose()?.unwrap_or_default(),
         };
         config.validate()?;

@@ -5,7 +5,7 @@
 use crawler_actor::env::gait::SquareWaveGait;
 use crawler_actor::env::model::{DEG, JOINT1_RANGE, JOINT2_RANGE};
 use crawler_actor::env::observation as obs;
-use crawler_actor::env::{Crawler, Direction, EnvConfig, OBS_DIM, VecEnv};
+use crawler_actor::env::{Crawler, Direction, EnvConfig, OBS_DIM, Reward, VecEnv};
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 
@@ -243,7 +243,8 @@ fn the_rocking_penalty_charges_a_rocking_gait_and_nothing_else() {
         for step in 0..1_000_u32 {
             let outcome = crawler.step_torques(SquareWaveGait::TUMBLES_IN_MUJOCO.torques(step as f32 * dt));
             let reward = outcome.reward;
-            assert!((reward.total() - (reward.position + reward.upright + reward.tilt_rate)).abs() < 1e-6);
+            let parts = reward.position + reward.upright + reward.tilt_rate + reward.base_impact;
+            assert!((reward.total() - parts).abs() < 1e-6);
             assert!((-0.5..=0.0).contains(&reward.tilt_rate), "{reward:?}");
             total += reward.total();
         }
@@ -263,6 +264,71 @@ fn the_rocking_penalty_charges_a_rocking_gait_and_nothing_else() {
     let mut still = Crawler::new(EnvConfig { tilt_rate_penalty: 1.0, ..endless() }, 0);
     let idle: f32 = (0..500).map(|_| still.step_torques([0.0, 0.0]).reward.tilt_rate).sum();
     assert!(idle > -1e-3, "{idle}");
+}
+
+#[test]
+fn the_landing_penalty_charges_hard_base_landings_and_not_resting_weight() {
+    // A crawler at rest carries its weight (about 9 N) on the base: below the threshold it
+    // costs nothing, and the force it reads is that weight.
+    let mut still = Crawler::new(EnvConfig { base_impact_penalty: 1.0, ..endless() }, 0);
+    let idle: f32 = (0..500).map(|_| still.step_torques([0.0, 0.0]).reward.base_impact).sum();
+    assert_eq!(idle, 0.0, "resting weight is below the 50 N threshold");
+    let weight = still.base_contact_force();
+    assert!((4.0..15.0).contains(&weight), "a resting crawler's base carries about its weight: {weight} N");
+
+    // The tumbling gait slams the base: with a threshold of 20 N its landings are charged, the
+    // charge grows with the weight, a higher threshold charges less, and the other parts of the
+    // reward are those of the unpenalised run (the penalty changes the reward, never the physics).
+    let run = |base_impact_penalty: f32, base_impact_threshold: f32| {
+        let config = EnvConfig { base_impact_penalty, base_impact_threshold, ..endless() };
+        let mut crawler = Crawler::new(config, 0);
+        let dt = crawler.config().dt;
+        let mut peak = 0.0_f32;
+        for step in 0..1_000_u32 {
+            let reward = crawler.step_torques(SquareWaveGait::TUMBLES_IN_MUJOCO.torques(step as f32 * dt)).reward;
+            assert!((-5.0..=0.0).contains(&reward.base_impact), "{reward:?}");
+            peak = peak.max(crawler.base_contact_force());
+        }
+        (crawler.episode_summary(None), peak)
+    };
+    let (plain, peak) = run(0.0, 20.0);
+    let (light, _) = run(0.01, 20.0);
+    let (heavy, _) = run(0.1, 20.0);
+    let (lenient, _) = run(0.1, 200.0);
+    assert!(peak > 40.0, "the tumbling gait lands the base hard: peak {peak} N");
+    assert_eq!(plain.reward.base_impact, 0.0, "no penalty by default: the study's reward");
+    assert!(
+        light.reward.base_impact < 0.0 && heavy.reward.base_impact < 2.0 * light.reward.base_impact,
+        "{light:?} {heavy:?}"
+    );
+    assert!(lenient.reward.base_impact > heavy.reward.base_impact, "{lenient:?} {heavy:?}");
+    assert_eq!((heavy.reward.position, heavy.reward.upright), (plain.reward.position, plain.reward.upright));
+}
+
+#[test]
+fn every_decisions_reward_lies_within_the_bound_the_learner_enforces() {
+    // The learner rejects a transition batch holding a reward beyond `Reward::max_abs_total`;
+    // a bound that missed a reward component would silently drop the very decisions that
+    // component charges (the hard landings, here). The harshest landing charge allowed, held
+    // for several physics steps, must stay inside it, and exceed the bound without it.
+    let config = EnvConfig { base_impact_penalty: 10.0, base_impact_threshold: 0.0, action_repeat: 6, ..endless() };
+    let bound = Reward::max_abs_total(&config);
+    let unpenalised_bound = Reward::max_abs_total(&EnvConfig { base_impact_penalty: 0.0, ..config.clone() });
+    let mut crawler = Crawler::new(config, 0);
+    let decision_seconds = 6.0 * crawler.config().dt;
+    let mut harshest = 0.0_f32;
+    for decision in 0..2_000_u32 {
+        let total = crawler
+            .step_torques(SquareWaveGait::TUMBLES_IN_MUJOCO.torques(decision as f32 * decision_seconds))
+            .reward
+            .total();
+        assert!(total.abs() <= bound, "decision {decision}: reward {total} beyond the bound {bound}");
+        harshest = harshest.max(total.abs());
+    }
+    assert!(
+        harshest > unpenalised_bound,
+        "the landing charge should need the wider bound: {harshest} vs {unpenalised_bound}"
+    );
 }
 
 #[test]
@@ -325,6 +391,14 @@ fn bad_settings_are_rejected_by_name() {
     for penalty in [-0.1, f32::NAN, 11.0] {
         let bad = EnvConfig { tilt_rate_penalty: penalty, ..EnvConfig::default() };
         assert!(bad.validate().unwrap_err().to_string().contains("env.tilt_rate_penalty"), "{penalty}");
+    }
+    for penalty in [-0.1, f32::NAN, 11.0] {
+        let bad = EnvConfig { base_impact_penalty: penalty, ..EnvConfig::default() };
+        assert!(bad.validate().unwrap_err().to_string().contains("env.base_impact_penalty"), "{penalty}");
+    }
+    for threshold in [-1.0, f32::NAN, f32::INFINITY] {
+        let bad = EnvConfig { base_impact_threshold: threshold, ..EnvConfig::default() };
+        assert!(bad.validate().unwrap_err().to_string().contains("env.base_impact_threshold"), "{threshold}");
     }
     for distance in [-0.001, f32::NAN, f32::INFINITY, 0.1] {
         let bad = EnvConfig { contact_prediction: distance, ..EnvConfig::default() };

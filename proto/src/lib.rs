@@ -30,7 +30,10 @@ pub use validate::{ProtoError, SequenceTracker, TransitionLimits};
 /// 7: the env settings carry the contact prediction distance
 ///    (`EnvSettings.contact_prediction`), whose default changed from rapier's 0.02 m to 0; an
 ///    older actor would simulate other physics.
-pub const PROTOCOL_VERSION: u32 = 7;
+/// 8: the env settings carry the penalty on the base's hard landings
+///    (`EnvSettings.base_impact_penalty`, `base_impact_threshold`) and episode stats its part
+///    of the return; an older actor would train on another reward.
+pub const PROTOCOL_VERSION: u32 = 8;
 
 /// Largest encoded message a node accepts, in bytes. The largest legal messages: a batch of
 /// [`MAX_BATCH_TRANSITIONS`] transitions of 40 values (about 1.4 MB) and the weights of a

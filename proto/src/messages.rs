@@ -167,6 +167,12 @@ pub struct EnvSettings {
     /// Distance in metres within which shapes get a contact; 0: from penetration on.
     #[prost(float, tag = "17")]
     pub contact_prediction: f32,
+    /// Weight of the penalty on the base's hard landings, per N·s; 0: none (the study's reward).
+    #[prost(float, tag = "18")]
+    pub base_impact_penalty: f32,
+    /// The base's contact force, in N, that the landing penalty lets through.
+    #[prost(float, tag = "19")]
+    pub base_impact_threshold: f32,
 }
 
 /// Ranges drawn once per episode (`crawler_actor::env::Randomization` documents each); every
@@ -268,6 +274,9 @@ pub struct EpisodeStats {
     /// The rocking penalty's part of the return (≤ 0; 0 where the env has none).
     #[prost(float, tag = "16")]
     pub return_tilt_rate: f32,
+    /// The landing penalty's part of the return (≤ 0; 0 where the env has none).
+    #[prost(float, tag = "17")]
+    pub return_base_impact: f32,
     /// Metres in the rewarded direction.
     #[prost(float, tag = "8")]
     pub distance: f32,

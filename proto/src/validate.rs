@@ -300,6 +300,7 @@ pub fn episode_stats(bytes: &[u8], run_id: &str) -> Result<EpisodeStats, ProtoEr
         stats.return_position,
         stats.return_upright,
         stats.return_tilt_rate,
+        stats.return_base_impact,
         stats.distance,
         stats.duration,
         stats.speed,
@@ -307,7 +308,13 @@ pub fn episode_stats(bytes: &[u8], run_id: &str) -> Result<EpisodeStats, ProtoEr
     finite("episode stats", &values)?;
     probability("epsilon", stats.epsilon)?;
     use report_limits::*;
-    let returns = [stats.episode_return, stats.return_position, stats.return_upright, stats.return_tilt_rate];
+    let returns = [
+        stats.episode_return,
+        stats.return_position,
+        stats.return_upright,
+        stats.return_tilt_rate,
+        stats.return_base_impact,
+    ];
     within("episode returns", &returns, -MAX_ABS_RETURN, MAX_ABS_RETURN)?;
     within("distance", &[stats.distance], -MAX_ABS_DISTANCE, MAX_ABS_DISTANCE)?;
     within("duration", &[stats.duration], 0.0, MAX_DURATION)?;

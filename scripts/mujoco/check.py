@@ -51,6 +51,7 @@ JOINT1_RANGE = (-80.0 * DEG, 80.0 * DEG)
 JOINT2_RANGE = (0.0, 150.0 * DEG)
 # Geometry used to lift a start pose clear of the floor, as the Rust env does (model.rs).
 BASE_HALF, LINK1_LENGTH, LINK2_LENGTH, LINK_RADIUS, TIP_HALF, FLOOR_Z = 0.05, 0.20, 0.24, 0.01, 0.01, -0.05
+BASE_IMPACT_THRESHOLD = 50.0  # N: the Rust env's default `base_impact_threshold`
 STUCK_SPEED = 0.05  # m/s: an episode slower than this is stuck (issue 18's definition)
 
 
@@ -84,6 +85,9 @@ class Crawler:
         self.model = mujoco.MjModel.from_xml_path(str(MODEL))
         self.data = mujoco.MjData(self.model)
         self.dt = self.model.opt.timestep
+        self.base_geom = mujoco.mj_name2id(self.model, mujoco.mjtObj.mjOBJ_GEOM, "base_geom")
+        self.link1_geom = mujoco.mj_name2id(self.model, mujoco.mjtObj.mjOBJ_GEOM, "link1_geom")
+        self.impact_threshold = BASE_IMPACT_THRESHOLD
 
     def reset(self, q1: float, q2: float) -> None:
         q1 = min(max(q1, JOINT1_RANGE[0]), JOINT1_RANGE[1])
@@ -97,6 +101,7 @@ class Crawler:
         self.flipped = False
         self.flips = 0
         self.overshoot = 0.0  # largest excursion beyond a joint limit, radians
+        self.impact_impulse = 0.0  # base contact force above the threshold, integrated (N·s)
         self.start_x = float(self.data.qpos[0])
 
     def step(self, torques) -> None:
@@ -111,6 +116,19 @@ class Crawler:
         q1, q2 = self.data.qpos[7], self.data.qpos[8]
         beyond = max(JOINT1_RANGE[0] - q1, q1 - JOINT1_RANGE[1], JOINT2_RANGE[0] - q2, q2 - JOINT2_RANGE[1], 0.0)
         self.overshoot = max(self.overshoot, beyond)
+        self.impact_impulse += self.dt * max(self.base_contact_force() - self.impact_threshold, 0.0)
+
+    def base_contact_force(self) -> float:
+        """The normal force on the base's contacts (N), as the Rust env's `base_contact_force`:
+        every contact of the base but the base–link 1 pair, which the port models as the
+        shoulder's damping."""
+        total, force = 0.0, np.zeros(6)
+        for i in range(self.data.ncon):
+            geoms = (self.data.contact[i].geom1, self.data.contact[i].geom2)
+            if self.base_geom in geoms and self.link1_geom not in geoms:
+                mujoco.mj_contactForce(self.model, self.data, i, force)
+                total += abs(force[0])
+        return total
 
     def rotation(self) -> np.ndarray:
         matrix = np.zeros(9)
@@ -227,7 +245,12 @@ def evaluate(args) -> None:
                 step += 1
         speed = crawler.distance(direction) / args.seconds
         episodes.append(
-            {"speed": speed, "flips": crawler.flips, "joint_limit_overshoot_deg": crawler.overshoot / DEG}
+            {
+                "speed": speed,
+                "flips": crawler.flips,
+                "joint_limit_overshoot_deg": crawler.overshoot / DEG,
+                "base_impact_impulse": crawler.impact_impulse,
+            }
         )
     speeds = np.array([e["speed"] for e in episodes])
     summary = {
@@ -237,6 +260,7 @@ def evaluate(args) -> None:
         "stuck_episodes": int((speeds < STUCK_SPEED).sum()),
         "flips": int(sum(e["flips"] for e in episodes)),
         "max_joint_limit_overshoot_deg": float(max(e["joint_limit_overshoot_deg"] for e in episodes)),
+        "mean_base_impact_impulse": float(np.mean([e["base_impact_impulse"] for e in episodes])),
     }
     report = {
         "engine": f"mujoco {mujoco.__version__}",
@@ -250,7 +274,8 @@ def evaluate(args) -> None:
     print(
         f"MuJoCo: {summary['mean_speed']:.3f} ± {summary['std_speed']:.3f} m/s, min {summary['min_speed']:.3f}, "
         f"{summary['stuck_episodes']}/{len(episodes)} stuck, {summary['flips']} flips, "
-        f"overshoot ≤ {summary['max_joint_limit_overshoot_deg']:.1f}°",
+        f"overshoot ≤ {summary['max_joint_limit_overshoot_deg']:.1f}°, "
+        f"base landings {summary['mean_base_impact_impulse']:.2f} N·s over {BASE_IMPACT_THRESHOLD:.0f} N",
         file=sys.stderr,
     )
 

@@ -79,6 +79,18 @@ pub struct EnvConfig {
     /// a second of rocking at ω costs w·ω². Gaits that jolt the base about its edges are the
     /// ones that crawl here and tumble on the study's model (EXPERIMENTS.md, "Fidelity").
     pub tilt_rate_penalty: f32,
+    /// Weight w of a penalty on hard landings of the base (0: the study's reward, none). Each
+    /// physics step adds −w·dt·max(0, F − `base_impact_threshold`), F being the total normal
+    /// force the base's contacts carried in that step, in N, at most 5 in magnitude (ten steps'
+    /// upright reward: a landing must cost more than one step's reward to be avoided): so a
+    /// landing costs w per N·s of impulse above what the threshold lets through. On the
+    /// study's model the gaits that tumble land the base hard on an edge (130–490 N), and a
+    /// millimetre of asymmetry in MuJoCo's contact solution then rolls it onto a side
+    /// (EXPERIMENTS.md, sessions 13–14).
+    pub base_impact_penalty: f32,
+    /// The base's contact force, in N, that [`Self::base_impact_penalty`] lets through
+    /// without a charge: resting on the floor carries the crawler's weight, about 9 N.
+    pub base_impact_threshold: f32,
     /// Per-episode physics randomisation (off by default).
     pub randomization: Randomization,
 }
@@ -102,6 +114,8 @@ impl Default for EnvConfig {
             joint_limit_timeconst: 0.02,
             max_tilt_deg: 180.0,
             tilt_rate_penalty: 0.0,
+            base_impact_penalty: 0.0,
+            base_impact_threshold: 50.0,
             randomization: Randomization::default(),
         }
     }
@@ -178,6 +192,20 @@ impl EnvConfig {
             "tilt_rate_penalty",
             penalty,
             "a weight in [0, 10] (0: no penalty, the study's reward)",
+        )?;
+        let penalty = self.base_impact_penalty;
+        check(
+            penalty.is_finite() && (0.0..=10.0).contains(&penalty),
+            "base_impact_penalty",
+            penalty,
+            "a weight in [0, 10] per N·s (0: no penalty, the study's reward)",
+        )?;
+        let threshold = self.base_impact_threshold;
+        check(
+            threshold.is_finite() && (0.0..=10_000.0).contains(&threshold),
+            "base_impact_threshold",
+            threshold,
+            "a force in [0, 10000] N",
         )?;
         self.randomization.validate()?;
         for (key, range) in [("start_joint1_deg", self.start_joint1_deg), ("start_joint2_deg", self.start_joint2_deg)] {

@@ -14,6 +14,10 @@ use super::model::*;
 use super::observation::{self as obs, OBS_DIM};
 use super::randomization::EpisodePhysics;
 
+/// The most one physics step's landing penalty may charge ([`Reward::base_impact`]): a
+/// degenerate contact cannot swamp a whole episode's return.
+const MAX_BASE_IMPACT_CHARGE: f32 = 5.0;
+
 /// The reward of one decision step, by component. Both are sums over the physics steps the
 /// decision was held for, so their scale per second does not depend on the action repeat.
 #[derive(Debug, Clone, Copy, Default, PartialEq)]
@@ -26,11 +30,24 @@ pub struct Reward {
     /// `−min(w·dt·(ωx² + ωy²), 0.5)` with w the env's `tilt_rate_penalty` (0 by default): the
     /// base's rocking about its horizontal axes.
     pub tilt_rate: f32,
+    /// `−min(w·dt·max(0, F − F₀), 5)` with w the env's `base_impact_penalty` (0 by default),
+    /// F the base's contact force and F₀ `base_impact_threshold`: hard landings of the base.
+    pub base_impact: f32,
 }
 
 impl Reward {
     pub fn total(&self) -> f32 {
-        self.position + self.upright + self.tilt_rate
+        self.position + self.upright + self.tilt_rate + self.base_impact
+    }
+
+    /// The largest |total| one decision can earn under `config`, which the learner uses to
+    /// reject out-of-range rewards from the network. Each physics step earns a position reward
+    /// in (−0.5, 0.5), an upright reward in [0, 0.5] and a tilt-rate charge in [−0.5, 0], so
+    /// at most 1 in magnitude, plus a landing charge of at most [`MAX_BASE_IMPACT_CHARGE`]
+    /// where the env charges landings; the margin covers rounding.
+    pub fn max_abs_total(config: &EnvConfig) -> f32 {
+        let landing = if config.base_impact_penalty > 0.0 { MAX_BASE_IMPACT_CHARGE } else { 0.0 };
+        1.01 * (1.0 + landing) * config.action_repeat as f32
     }
 }
 
@@ -66,6 +83,9 @@ pub struct EpisodeSummary {
     pub truncated: bool,
     /// Physics steps taken.
     pub physics_steps: u32,
+    /// The base's contact force above `base_impact_threshold`, integrated over the episode
+    /// (N·s): how hard it landed, measured whether or not the reward charges it.
+    pub base_impact_impulse: f32,
 }
 
 /// World poses of the bodies at one physics step, for plots and animations.
@@ -123,6 +143,7 @@ struct EpisodeState {
     reward: Reward,
     flips: u32,
     flipped: bool,
+    base_impact_impulse: f32,
 }
 
 /// A single crawler: physics, observation, reward and episode logic.
@@ -134,6 +155,8 @@ pub struct Crawler {
     episode: EpisodeState,
     applied_torques: [f32; 2],
     touches: [f32; 17],
+    /// Total normal force on the base's contacts in the last physics step, N.
+    base_force: f32,
     recording: Option<Vec<PoseFrame>>,
     /// This episode's physics (the env's own unless randomised).
     physics: EpisodePhysics,
@@ -169,6 +192,7 @@ impl Crawler {
             episode: EpisodeState::default(),
             applied_torques: [0.0; 2],
             touches: [0.0; 17],
+            base_force: 0.0,
             recording: None,
             physics,
             in_flight: std::collections::VecDeque::new(),
@@ -209,6 +233,7 @@ impl Crawler {
         self.draw_observation_noise();
         self.applied_torques = [0.0; 2];
         self.touches = [0.0; 17];
+        self.base_force = 0.0;
         self.episode = EpisodeState { start_x: self.base_x(), ..EpisodeState::default() };
         let first_frame = self.pose_frame();
         if let Some(frames) = &mut self.recording {
@@ -238,6 +263,7 @@ impl Crawler {
             reward.position += position_reward(dx);
             reward.upright += upright_reward(self.base_rotation());
             reward.tilt_rate += self.tilt_rate_reward();
+            reward.base_impact += self.base_impact_reward();
             if self.track_tilt() {
                 outcome.terminated = true;
                 break;
@@ -261,6 +287,7 @@ impl Crawler {
         self.episode.reward.position += reward.position;
         self.episode.reward.upright += reward.upright;
         self.episode.reward.tilt_rate += reward.tilt_rate;
+        self.episode.reward.base_impact += reward.base_impact;
         outcome.reward = reward;
         outcome
     }
@@ -389,6 +416,20 @@ impl Crawler {
         -(weight * self.config.dt * (local.x * local.x + local.y * local.y)).min(0.5)
     }
 
+    /// This physics step's penalty on a hard landing of the base (see [`Reward::base_impact`]).
+    /// It also adds the step's excess impulse to the episode's total, which is measured with
+    /// or without a charge.
+    fn base_impact_reward(&mut self) -> f32 {
+        let impulse = self.config.dt * (self.base_force - self.config.base_impact_threshold).max(0.0);
+        self.episode.base_impact_impulse += impulse;
+        -(self.config.base_impact_penalty * impulse).min(MAX_BASE_IMPACT_CHARGE)
+    }
+
+    /// The total normal force on the base's contacts in the last physics step, in N.
+    pub fn base_contact_force(&self) -> f32 {
+        self.base_force
+    }
+
     /// Counts a flip when the base turns upside down, and returns whether it tilts further
     /// from upright than `max_tilt_deg` allows: both read the one up axis of this step.
     fn track_tilt(&mut self) -> bool {
@@ -402,9 +443,11 @@ impl Crawler {
         up.z < self.config.max_tilt_deg.to_radians().cos()
     }
 
-    /// Reads the normal forces at the touch sites from the last contact solve.
+    /// Reads the normal forces at the touch sites from the last contact solve, and the base's
+    /// total contact force (every point, not only those at its corner sites).
     fn read_touch_sensors(&mut self) {
         self.touches = [0.0; 17];
+        self.base_force = 0.0;
         let inv_dt = 1.0 / self.config.dt;
         let sites: [(ColliderHandle, usize, f32); 3] = [
             (self.handles.tip_collider, 0, TIP_HALF_EXTENT),
@@ -418,6 +461,9 @@ impl Crawler {
                     for point in &manifold.points {
                         let local = if ours_is_first { point.local_p1 } else { point.local_p2 };
                         let force = point.data.impulse.abs() * inv_dt;
+                        if collider == self.handles.base_collider {
+                            self.base_force += force;
+                        }
                         if let Some(slot) = touch_slot(collider == self.handles.link1_collider, local, half) {
                             self.touches[first_slot + slot] += force;
                         }
@@ -533,6 +579,7 @@ impl Crawler {
             terminated: outcome.is_some_and(|o| o.terminated),
             truncated: outcome.is_some_and(|o| o.truncated),
             physics_steps: self.episode.physics_steps,
+            base_impact_impulse: self.episode.base_impact_impulse,
         }
     }
 

@@ -75,13 +75,6 @@ pub fn observation_range(max_torque: f32) -> Vec<[f32; 2]> {
     ranges
 }
 
-/// The largest |reward| of one decision: each physics step earns a position reward in
-/// (−0.5, 0.5) and an upright reward in [0, 0.5], so a decision held `action_repeat` steps
-/// earns less than `action_repeat` in magnitude (the margin covers rounding).
-pub fn max_abs_reward(action_repeat: u32) -> f32 {
-    1.01 * action_repeat as f32
-}
-
 /// Index (0-based) of the box corner nearest to a point given in the box's own frame,
 /// following the MJCF's corner numbering.
 pub(crate) fn corner_index(local: [f32; 3]) -> usize {

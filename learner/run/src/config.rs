@@ -660,6 +660,7 @@ mod tests {
             ("env.max_tilt_deg=0.0", "env.max_tilt_deg"),
             ("env.max_tilt_deg=nan", "env.max_tilt_deg"),
             ("env.contact_prediction=nan", "env.contact_prediction"),
+            ("env.base_impact_threshold=-inf", "env.base_impact_threshold"),
         ] {
             let err = TrainConfig::from_toml("", "test", &[assignment.into()]).unwrap_err().to_string();
             assert!(err.contains(key), "{assignment}: {err}");

@@ -211,7 +211,7 @@ pub(super) async fn serve(
         max_batch: proto::MAX_BATCH_TRANSITIONS,
         envs_per_actor: config.actor.envs_per_actor as u32,
         observation_range: observation::observation_range(config.env.max_torque),
-        max_abs_reward: observation::max_abs_reward(config.env.action_repeat),
+        max_abs_reward: crawler_actor::env::Reward::max_abs_total(&config.env),
     };
     let transitions = session
         .declare_subscriber(keys::all_transitions(run_id))

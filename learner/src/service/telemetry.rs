@@ -203,6 +203,7 @@ fn write_episode_metrics(metrics: &mut MetricsWriter, shared: &Shared, train_sec
             ("return_position", f64::from(e.return_position)),
             ("return_upright", f64::from(e.return_upright)),
             ("return_tilt_rate", f64::from(e.return_tilt_rate)),
+            ("return_base_impact", f64::from(e.return_base_impact)),
             ("speed", f64::from(e.speed)),
             ("flips", f64::from(e.flips)),
         ];

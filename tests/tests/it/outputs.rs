@@ -59,6 +59,7 @@ fn a_run_writes_metrics_that_plot_and_render_turn_into_pictures() {
         "episode/return_position",
         "episode/return_upright",
         "episode/return_tilt_rate",
+        "episode/return_base_impact",
         "episode/speed",
         "train/loss",
         "train/mean_q",

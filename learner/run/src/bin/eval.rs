@@ -47,6 +47,9 @@ struct Episode {
     return_position: f32,
     return_upright: f32,
     return_tilt_rate: f32,
+    return_base_impact: f32,
+    /// The base's contact force above `env.base_impact_threshold`, integrated (N·s).
+    base_impact_impulse: f32,
     flips: u32,
 }
 
@@ -86,17 +89,20 @@ fn main() -> anyhow::Result<()> {
             return_position: summary.reward.position,
             return_upright: summary.reward.upright,
             return_tilt_rate: summary.reward.tilt_rate,
+            return_base_impact: summary.reward.base_impact,
+            base_impact_impulse: summary.base_impact_impulse,
             flips: summary.flips,
         });
     }
     let speed = mean_std(episodes.iter().map(|e| f64::from(e.speed)));
     let distance = mean_std(episodes.iter().map(|e| f64::from(e.distance)));
     let episode_return = mean_std(episodes.iter().map(|e| f64::from(e.episode_return)));
+    let impact = mean_std(episodes.iter().map(|e| f64::from(e.base_impact_impulse)));
     let flips: u32 = episodes.iter().map(|e| e.flips).sum();
     let min_speed = episodes.iter().map(|e| e.speed).fold(f32::INFINITY, f32::min);
     let stuck = episodes.iter().filter(|e| e.speed < STUCK_SPEED).count();
     eprintln!(
-        "{}: speed {:.3} ± {:.3} m/s (min {min_speed:.3}, {stuck} stuck below {STUCK_SPEED} m/s), distance {:.2} ± {:.2} m, return {:.1} ± {:.1}, flips {flips} over {} episodes of {} s",
+        "{}: speed {:.3} ± {:.3} m/s (min {min_speed:.3}, {stuck} stuck below {STUCK_SPEED} m/s), distance {:.2} ± {:.2} m, return {:.1} ± {:.1}, base landings {:.2} N·s over {} N, flips {flips} over {} episodes of {} s",
         loaded.path.display(),
         speed.mean,
         speed.std,
@@ -104,6 +110,8 @@ fn main() -> anyhow::Result<()> {
         distance.std,
         episode_return.mean,
         episode_return.std,
+        impact.mean,
+        env.base_impact_threshold,
         episodes.len(),
         args.seconds
     );
@@ -126,6 +134,8 @@ fn main() -> anyhow::Result<()> {
         "distance": distance,
         "return": episode_return,
         "flips": flips,
+        "base_impact_impulse": impact,
+        "base_impact_threshold": env.base_impact_threshold,
     });
     let mut stdout = std::io::stdout().lock();
     serde_json::to_writer_pretty(&mut stdout, &report)?;
