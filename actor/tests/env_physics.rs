@@ -270,7 +270,11 @@ fn the_rocking_penalty_charges_a_rocking_gait_and_nothing_else() {
 fn the_landing_penalty_charges_hard_base_landings_and_not_resting_weight() {
     // A crawler at rest carries its weight (about 9 N) on the base: below the threshold it
     // costs nothing, and the force it reads is that weight.
+    // It starts a little above the floor: the first touchdown is a landing, so let it settle.
     let mut still = Crawler::new(EnvConfig { base_impact_penalty: 1.0, ..endless() }, 0);
+    for _ in 0..500 {
+        still.step_torques([0.0, 0.0]);
+    }
     let idle: f32 = (0..500).map(|_| still.step_torques([0.0, 0.0]).reward.base_impact).sum();
     assert_eq!(idle, 0.0, "resting weight is below the 50 N threshold");
     let weight = still.base_contact_force();
@@ -310,8 +314,10 @@ fn every_decisions_reward_lies_within_the_bound_the_learner_enforces() {
     // The learner rejects a transition batch holding a reward beyond `Reward::max_abs_total`;
     // a bound that missed a reward component would silently drop the very decisions that
     // component charges (the hard landings, here). The harshest landing charge allowed, held
-    // for several physics steps, must stay inside it, and exceed the bound without it.
-    let config = EnvConfig { base_impact_penalty: 10.0, base_impact_threshold: 0.0, action_repeat: 6, ..endless() };
+    // for several physics steps, must stay inside it, and exceed the bound without it. The
+    // coarse 10 ms physics step lets a landing's charge reach its per-step cap.
+    let config =
+        EnvConfig { base_impact_penalty: 10.0, base_impact_threshold: 0.0, action_repeat: 6, dt: 0.01, ..endless() };
     let bound = Reward::max_abs_total(&config);
     let unpenalised_bound = Reward::max_abs_total(&EnvConfig { base_impact_penalty: 0.0, ..config.clone() });
     let mut crawler = Crawler::new(config, 0);
