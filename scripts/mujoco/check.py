@@ -87,7 +87,6 @@ class Crawler:
         self.dt = self.model.opt.timestep
         self.base_geom = mujoco.mj_name2id(self.model, mujoco.mjtObj.mjOBJ_GEOM, "base_geom")
         self.link1_geom = mujoco.mj_name2id(self.model, mujoco.mjtObj.mjOBJ_GEOM, "link1_geom")
-        self.impact_threshold = BASE_IMPACT_THRESHOLD
 
     def reset(self, q1: float, q2: float) -> None:
         q1 = min(max(q1, JOINT1_RANGE[0]), JOINT1_RANGE[1])
@@ -116,7 +115,7 @@ class Crawler:
         q1, q2 = self.data.qpos[7], self.data.qpos[8]
         beyond = max(JOINT1_RANGE[0] - q1, q1 - JOINT1_RANGE[1], JOINT2_RANGE[0] - q2, q2 - JOINT2_RANGE[1], 0.0)
         self.overshoot = max(self.overshoot, beyond)
-        self.impact_impulse += self.dt * max(self.base_contact_force() - self.impact_threshold, 0.0)
+        self.impact_impulse += self.dt * max(self.base_contact_force() - BASE_IMPACT_THRESHOLD, 0.0)
 
     def base_contact_force(self) -> float:
         """The normal force on the base's contacts (N), as the Rust env's `base_contact_force`:
