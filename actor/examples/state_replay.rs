@@ -48,7 +48,12 @@ fn main() -> anyhow::Result<()> {
         let mut states = Vec::with_capacity(query.torques.len());
         for torques in query.torques {
             crawler.step_torques(torques);
-            states.push(crawler.generalized_state());
+            let GeneralizedState { qpos, qvel } = crawler.generalized_state();
+            states.push(serde_json::json!({
+                "qpos": qpos,
+                "qvel": qvel,
+                "base_force": crawler.base_contact_force(),
+            }));
         }
         println!("{}", serde_json::json!({ "states": states }));
     }

@@ -21,8 +21,10 @@ Run through scripts/mujoco-check, which installs the pinned MuJoCo into a cached
                      every --every'th state of that trajectory this project's env
                      (actor/examples/state_replay.rs) is set to the same qpos/qvel and plays
                      the same torques for --horizon steps. Prints, per horizon, how far the
-                     two engines drift apart (base tilt, joint angles, rates), and what this
-                     engine does from the states where MuJoCo's base is about to tip over.
+                     two engines drift apart (base tilt, joint angles, rates), the normal
+                     and landing impulse on the base over 1, 5 and --horizon steps in both,
+                     and what this engine does from the states where MuJoCo's base is about
+                     to tip over.
   solvers            a square-wave gait on the study's model under each of MuJoCo's solvers
                      (the model's PGS, Newton, CG, PGS with elliptic cones): speed, flips
                      and how far the base rolls. Shows whether a gait's roll comes from the
@@ -413,7 +415,7 @@ def replay(args) -> None:
         torques_of = action_torques(env)
         repeat = int(env.get("action_repeat", 1))
         gait = {"checkpoint": args.checkpoint, "action_repeat": repeat}
-    qpos, qvel, torques, phases = [], [], [], []
+    qpos, qvel, torques, phases, base_forces = [], [], [], [], []
     crawler.reset(args.start[0] * DEG, args.start[1] * DEG)
     crawler.data.qpos[2] += args.lift
     mujoco.mj_forward(crawler.model, crawler.data)
@@ -429,6 +431,7 @@ def replay(args) -> None:
             torque = torques_of(action)
         torques.append(torque)
         crawler.step(torque)
+        base_forces.append(crawler.base_contact_force())
     qpos.append(crawler.data.qpos.copy())
     qvel.append(crawler.data.qvel.copy())
     starts = list(range(0, steps, args.every))
@@ -486,6 +489,31 @@ def replay(args) -> None:
                 for s, reply in chosen
             ]))
         by_phase[phase] = row
+    # The base's contact force from the same states under the same torques: whether the two
+    # contact models load the base alike (what the landing penalty charges), apart from how a
+    # gait plays out over a whole episode. Impulses are per replay, over the first 5 steps
+    # (near-identical states) and over the whole horizon; "landing" is the part above the
+    # penalty's threshold, as eval reports it.
+    def impulses(forces) -> tuple:
+        forces = np.asarray(forces, dtype=float)
+        return crawler.dt * forces.sum(), crawler.dt * np.maximum(forces - BASE_IMPACT_THRESHOLD, 0.0).sum()
+
+    contact = {}
+    for window in sorted({1, 5, horizon}):
+        ours = [impulses([state["base_force"] for state in reply[:window]]) for reply in replies]
+        theirs = [impulses(base_forces[s : s + window]) for s in starts]
+        total_ours, landing_ours = (float(sum(pair[i] for pair in ours)) for i in (0, 1))
+        total_theirs, landing_theirs = (float(sum(pair[i] for pair in theirs)) for i in (0, 1))
+        landed = [i for i, pair in enumerate(theirs) if pair[1] > 0.0]
+        contact[window] = {
+            "normal_impulse_ns": {"rapier": total_ours, "mujoco": total_theirs},
+            "landing_impulse_ns": {"rapier": landing_ours, "mujoco": landing_theirs},
+            "replays_landing_in_mujoco": len(landed),
+            "of_those_landing_here": int(sum(ours[i][1] > 0.0 for i in landed)),
+            "replays_landing_here": int(sum(pair[1] > 0.0 for pair in ours)),
+        }
+    peaks = {"rapier": float(max(max(state["base_force"] for state in reply) for reply in replies)),
+             "mujoco": float(max(base_forces[:steps]))}
     # The states from which MuJoCo's base tips past 90° within the horizon while still
     # within 45° of upright: does this engine tip from them too?
     onsets = []
@@ -503,6 +531,7 @@ def replay(args) -> None:
         "mujoco_speed": float(qpos[steps][0] - qpos[0][0]) / args.seconds,
         "drift": {str(h): row for h, row in table.items()},
         "one_step_by_phase": by_phase,
+        "base_contact": {"by_window_steps": {str(w): row for w, row in contact.items()}, "peak_force_n": peaks},
         "tip_onsets": {
             "count": len(onsets),
             "rapier_tips_too": sum(o["rapier_max_tilt_deg"] > 90.0 for o in onsets),
@@ -519,6 +548,14 @@ def replay(args) -> None:
     for phase, row in by_phase.items():
         print(f"  one step from {row['replays']} states '{phase}': mean |Δ| pitch rate {row['pitch_rate']:.3g}, "
               f"q1 rate {row['q1_rate']:.3g}, q2 rate {row['q2_rate']:.3g} rad/s", file=sys.stderr)
+    for window, row in contact.items():
+        normal, landing = row["normal_impulse_ns"], row["landing_impulse_ns"]
+        print(f"  base contact over {window} steps from each state, summed over the replays: normal impulse "
+              f"{normal['rapier']:.3g} N·s here, {normal['mujoco']:.3g} in MuJoCo; landing impulse (> "
+              f"{BASE_IMPACT_THRESHOLD:g} N) {landing['rapier']:.3g} here, {landing['mujoco']:.3g} in MuJoCo; "
+              f"MuJoCo lands in {row['replays_landing_in_mujoco']} replays, this engine in "
+              f"{row['of_those_landing_here']} of those and {row['replays_landing_here']} in all", file=sys.stderr)
+    print(f"  peak base force: {peaks['rapier']:.4g} N here, {peaks['mujoco']:.4g} N in MuJoCo", file=sys.stderr)
     tips = report["tip_onsets"]
     print(f"  MuJoCo tips past 90° from {tips['count']} of the states (≤ 45° at the start); this engine from "
           f"{tips['rapier_tips_too']} of them (median largest tilt {tips['rapier_max_tilt_deg_median']})",

@@ -51,6 +51,19 @@ impl Reward {
     }
 }
 
+/// Sums term by term: a decision's reward over its physics steps, an episode's over its
+/// decisions. Listing every field here (no `..`) makes a new term a compile error until it
+/// is summed too.
+impl std::ops::AddAssign for Reward {
+    fn add_assign(&mut self, step: Reward) {
+        let Reward { position, upright, tilt_rate, base_impact } = step;
+        self.position += position;
+        self.upright += upright;
+        self.tilt_rate += tilt_rate;
+        self.base_impact += base_impact;
+    }
+}
+
 /// What one decision step produced.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct StepOutcome {
@@ -260,10 +273,12 @@ impl Crawler {
             let x_before = self.base_x();
             self.physics_step(torques);
             let dx = direction * (self.base_x() - x_before);
-            reward.position += position_reward(dx);
-            reward.upright += upright_reward(self.base_rotation());
-            reward.tilt_rate += self.tilt_rate_reward();
-            reward.base_impact += self.base_impact_reward();
+            reward += Reward {
+                position: position_reward(dx),
+                upright: upright_reward(self.base_rotation()),
+                tilt_rate: self.tilt_rate_reward(),
+                base_impact: self.base_impact_reward(),
+            };
             if self.track_tilt() {
                 outcome.terminated = true;
                 break;
@@ -284,10 +299,7 @@ impl Crawler {
         }
         self.applied_torques = torques;
         self.draw_observation_noise();
-        self.episode.reward.position += reward.position;
-        self.episode.reward.upright += reward.upright;
-        self.episode.reward.tilt_rate += reward.tilt_rate;
-        self.episode.reward.base_impact += reward.base_impact;
+        self.episode.reward += reward;
         outcome.reward = reward;
         outcome
     }

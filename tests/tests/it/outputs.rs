@@ -394,6 +394,7 @@ fn mujoco_cross_check_agrees_on_layout_and_policy_and_runs_an_episode() {
 /// MuJoCo makes one only once shapes touch, and so does this env by default
 /// (`env.contact_prediction = 0`); rapier's own speculative contacts (0.02 m) feel a landing a
 /// step early, which shows as a larger error from the states where the crawler is airborne.
+/// The first replay also compares the force on the base, which the landing penalty charges.
 #[test]
 #[ignore = "needs MuJoCo from PyPI; scripts/test runs it where `scripts/mujoco-check setup` succeeds"]
 fn mujoco_state_replay_lands_single_steps_near_the_study_model() {
@@ -424,6 +425,27 @@ fn mujoco_state_replay_lands_single_steps_near_the_study_model() {
         let error = one_step[measure]["mean_abs"].as_f64().unwrap();
         assert!(error < 1.0, "{measure}: one step lands {error} rad/s from MuJoCo on average: {faithful}");
     }
+    // The base's contact force, what the landing penalty charges, from the same states under
+    // the same torques. Over the 5-step horizon the normal impulse here is about 0.7 of
+    // MuJoCo's (rapier spreads a landing over more steps; EXPERIMENTS.md, "Session 18"), and a
+    // landing above the threshold here is one there too: a reading that lost the 1/dt, counted
+    // the link 1 pair, or charged phantom landings would leave these bounds.
+    let contact = &faithful["base_contact"]["by_window_steps"]["5"];
+    let (ours, theirs) = (
+        contact["normal_impulse_ns"]["rapier"].as_f64().unwrap(),
+        contact["normal_impulse_ns"]["mujoco"].as_f64().unwrap(),
+    );
+    assert!(
+        (0.5..1.5).contains(&(ours / theirs)),
+        "base normal impulse {ours} N·s here, {theirs} in MuJoCo: {faithful}"
+    );
+    let (landing_there, landing_both, landing_here) = (
+        contact["replays_landing_in_mujoco"].as_u64().unwrap(),
+        contact["of_those_landing_here"].as_u64().unwrap(),
+        contact["replays_landing_here"].as_u64().unwrap(),
+    );
+    assert!(landing_there >= 20 && 2 * landing_both >= landing_there, "landings: {contact}");
+    assert!(10 * (landing_here - landing_both) <= landing_there, "landings here that MuJoCo does not have: {contact}");
     let faithful_limit = limit_error(&faithful);
     assert!(faithful_limit < 1.0, "past a limit, one step lands {faithful_limit} rad/s from MuJoCo: {faithful}");
 
