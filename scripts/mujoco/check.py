@@ -499,11 +499,12 @@ def replay(args) -> None:
         return crawler.dt * forces.sum(), crawler.dt * np.maximum(forces - BASE_IMPACT_THRESHOLD, 0.0).sum()
 
     contact = {}
-    for window in sorted({1, 5, horizon}):
+    # Only windows the replies cover: each holds `horizon` steps.
+    for window in sorted({1, 5, horizon} & set(range(1, horizon + 1))):
         ours = [impulses([state["base_force"] for state in reply[:window]]) for reply in replies]
         theirs = [impulses(base_forces[s : s + window]) for s in starts]
-        total_ours, landing_ours = (float(sum(pair[i] for pair in ours)) for i in (0, 1))
-        total_theirs, landing_theirs = (float(sum(pair[i] for pair in theirs)) for i in (0, 1))
+        total_ours, landing_ours = (float(v) for v in np.sum(ours, axis=0))
+        total_theirs, landing_theirs = (float(v) for v in np.sum(theirs, axis=0))
         landed = [i for i, pair in enumerate(theirs) if pair[1] > 0.0]
         contact[window] = {
             "normal_impulse_ns": {"rapier": total_ours, "mujoco": total_theirs},
@@ -512,8 +513,9 @@ def replay(args) -> None:
             "of_those_landing_here": int(sum(ours[i][1] > 0.0 for i in landed)),
             "replays_landing_here": int(sum(pair[1] > 0.0 for pair in ours)),
         }
+    # Over the same stretch of trajectory: the replays reach `horizon` steps past the last start.
     peaks = {"rapier": float(max(max(state["base_force"] for state in reply) for reply in replies)),
-             "mujoco": float(max(base_forces[:steps]))}
+             "mujoco": float(max(base_forces))}
     # The states from which MuJoCo's base tips past 90° within the horizon while still
     # within 45° of upright: does this engine tip from them too?
     onsets = []
