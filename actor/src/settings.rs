@@ -156,6 +156,7 @@ impl From<&EnvConfig> for proto::EnvSettings {
             tilt_rate_penalty: env.tilt_rate_penalty,
             base_impact_penalty: env.base_impact_penalty,
             base_impact_threshold: env.base_impact_threshold,
+            position_reward_weight: env.position_reward_weight,
             randomization: env.randomization.is_active().then(|| {
                 let r = &env.randomization;
                 proto::RandomizationSettings {
@@ -230,6 +231,7 @@ impl TryFrom<&proto::EnvSettings> for EnvConfig {
             tilt_rate_penalty: env.tilt_rate_penalty,
             base_impact_penalty: env.base_impact_penalty,
             base_impact_threshold: env.base_impact_threshold,
+            position_reward_weight: env.position_reward_weight,
             randomization: env.randomization.as_ref().map(Randomization::try_from).transpose()?.unwrap_or_default(),
         };
         config.validate()?;
@@ -300,6 +302,7 @@ mod tests {
         settings.env.action_repeat = 10;
         settings.env.max_tilt_deg = 60.0;
         settings.env.tilt_rate_penalty = 0.02;
+        settings.env.position_reward_weight = 3.0;
         settings.env.contact_prediction = 0.004;
         settings.env.joint_limit_timeconst = 0.03;
         settings.env.randomization.latency_steps = [0, 2];

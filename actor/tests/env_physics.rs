@@ -338,6 +338,44 @@ fn every_decisions_reward_lies_within_the_bound_the_learner_enforces() {
 }
 
 #[test]
+fn the_position_weight_scales_the_position_reward_and_nothing_else() {
+    // The same torques from the same start give the same physics whatever the weight, so the
+    // position part scales by exactly the weight and the other parts stay as they were.
+    let run = |position_reward_weight: f32| {
+        let mut crawler = Crawler::new(EnvConfig { position_reward_weight, ..endless() }, 0);
+        let dt = crawler.config().dt;
+        for step in 0..2_000_u32 {
+            crawler.step_torques(SquareWaveGait::FORWARD.torques(step as f32 * dt));
+        }
+        crawler.episode_summary(None)
+    };
+    let (study, weighted) = (run(1.0), run(3.0));
+    assert!(study.reward.position > 0.0, "the forward gait makes progress: {study:?}");
+    assert_eq!(weighted.distance, study.distance, "a reward weight changed the physics");
+    let ratio = weighted.reward.position / study.reward.position;
+    assert!((ratio - 3.0).abs() < 1e-4, "position reward scaled by {ratio}, not 3");
+    assert_eq!(weighted.reward.upright, study.reward.upright);
+    assert_eq!(EnvConfig::default().position_reward_weight, 1.0, "the study's reward by default");
+
+    // The learner's bound on a decision's reward widens with the weight: at the largest
+    // weight a coarse-stepped tumbling gait's rewards stay inside it, and some exceed the
+    // study's bound, which would have dropped them.
+    let config = EnvConfig { position_reward_weight: 10.0, action_repeat: 6, dt: 0.01, ..endless() };
+    let bound = Reward::max_abs_total(&config);
+    let study_bound = Reward::max_abs_total(&EnvConfig { position_reward_weight: 1.0, ..config.clone() });
+    let mut crawler = Crawler::new(config, 0);
+    let decision_seconds = 6.0 * crawler.config().dt;
+    let mut largest = 0.0_f32;
+    for decision in 0..2_000_u32 {
+        let torques = SquareWaveGait::TUMBLES_IN_MUJOCO.torques(decision as f32 * decision_seconds);
+        let total = crawler.step_torques(torques).reward.total();
+        assert!(total.abs() <= bound, "decision {decision}: reward {total} beyond the bound {bound}");
+        largest = largest.max(total.abs());
+    }
+    assert!(largest > study_bound, "the weight should need the wider bound: {largest} vs {study_bound}");
+}
+
+#[test]
 fn idle_episodes_terminate_and_long_ones_truncate() {
     let config = EnvConfig::default();
     let mut crawler = Crawler::new(config.clone(), 0);
@@ -401,6 +439,10 @@ fn bad_settings_are_rejected_by_name() {
     for penalty in [-0.1, f32::NAN, 11.0] {
         let bad = EnvConfig { base_impact_penalty: penalty, ..EnvConfig::default() };
         assert!(bad.validate().unwrap_err().to_string().contains("env.base_impact_penalty"), "{penalty}");
+    }
+    for weight in [0.0, -1.0, f32::NAN, 11.0] {
+        let bad = EnvConfig { position_reward_weight: weight, ..EnvConfig::default() };
+        assert!(bad.validate().unwrap_err().to_string().contains("env.position_reward_weight"), "{weight}");
     }
     for threshold in [-1.0, f32::NAN, f32::INFINITY] {
         let bad = EnvConfig { base_impact_threshold: threshold, ..EnvConfig::default() };

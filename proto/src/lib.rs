@@ -33,7 +33,9 @@ pub use validate::{ProtoError, SequenceTracker, TransitionLimits};
 /// 8: the env settings carry the penalty on the base's hard landings
 ///    (`EnvSettings.base_impact_penalty`, `base_impact_threshold`) and episode stats its part
 ///    of the return; an older actor would train on another reward.
-pub const PROTOCOL_VERSION: u32 = 8;
+/// 9: the env settings carry the position reward's weight (`EnvSettings.position_reward_weight`);
+///    an older actor would train on the study's weight whatever the learner's config says.
+pub const PROTOCOL_VERSION: u32 = 9;
 
 /// Largest encoded message a node accepts, in bytes. The largest legal messages: a batch of
 /// [`MAX_BATCH_TRANSITIONS`] transitions of 40 values (about 1.4 MB) and the weights of a

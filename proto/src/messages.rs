@@ -173,6 +173,9 @@ pub struct EnvSettings {
     /// The base's contact force, in N, that the landing penalty lets through.
     #[prost(float, tag = "19")]
     pub base_impact_threshold: f32,
+    /// Weight of the position reward; 1: the study's reward.
+    #[prost(float, tag = "20")]
+    pub position_reward_weight: f32,
 }
 
 /// Ranges drawn once per episode (`crawler_actor::env::Randomization` documents each); every

@@ -273,8 +273,9 @@ pub mod report_limits {
     pub const MAX_ABS_DISTANCE: f32 = 1e5;
     /// s of simulated time in one episode (the longest is 500 × 100 000 × 0.02 s).
     pub const MAX_DURATION: f32 = 1e6;
-    /// |return| of one episode: at most 6 per physics step (1, plus a landing charge of at
-    /// most 5), so at most 3e8 over the longest episode.
+    /// |return| of one episode: at most 10.5 per physics step (5.5 with the largest position
+    /// reward weight, 10, plus a landing charge of at most 5), so at most 5.25e8 over the
+    /// longest episode.
     pub const MAX_ABS_RETURN: f32 = 1e9;
     /// Decisions per second one actor can report.
     pub const MAX_STEPS_PER_SECOND: f32 = 1e8;

@@ -4,6 +4,11 @@ use serde::{Deserialize, Serialize};
 
 use super::randomization::Randomization;
 
+/// Largest `env.position_reward_weight`: ten times the study's. It keeps a physics step's
+/// reward, and so an episode's return, inside the bounds the protocol enforces
+/// (`crawler_proto::validate::report_limits::MAX_ABS_RETURN`).
+pub const MAX_POSITION_REWARD_WEIGHT: f32 = 10.0;
+
 /// Which way along x the crawler is rewarded for moving.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, Default)]
 #[serde(rename_all = "lowercase")]
@@ -73,6 +78,12 @@ pub struct EnvConfig {
     /// future reward by tipping over and learns a margin from it; a gait that only stays up
     /// in one simulator's physics is what fails to transfer (EXPERIMENTS.md, "Fidelity").
     pub max_tilt_deg: f32,
+    /// Weight k of the position reward (1: the study's reward). Each physics step earns
+    /// k·0.5·(1 − e^(−100·dx)) for its progress dx. At the study's weight the upright term
+    /// dominates a step's reward (0.5 against 0.048 at 0.5 m/s), and pitching the base by 20°
+    /// costs as much as 0.6 m/s of speed earns; a larger k makes the policy trade pitch and
+    /// safety margins for speed at a higher rate.
+    pub position_reward_weight: f32,
     /// Weight w of a penalty on the base's rocking (0: the study's reward, none). Each physics
     /// step adds −w·dt·(ωx² + ωy²), ω being the base's angular velocity about its own two
     /// horizontal axes in rad/s (legged_gym's `ang_vel_xy` term), at most 0.5 in magnitude, so
@@ -113,6 +124,7 @@ impl Default for EnvConfig {
             start_joint2_deg: [-22.5, 22.5],
             joint_limit_timeconst: 0.02,
             max_tilt_deg: 180.0,
+            position_reward_weight: 1.0,
             tilt_rate_penalty: 0.0,
             base_impact_penalty: 0.0,
             base_impact_threshold: 50.0,
@@ -185,6 +197,13 @@ impl EnvConfig {
             "max_tilt_deg",
             tilt,
             "an angle in (0, 180] degrees; 180 never terminates",
+        )?;
+        let weight = self.position_reward_weight;
+        check(
+            weight.is_finite() && weight > 0.0 && weight <= MAX_POSITION_REWARD_WEIGHT,
+            "position_reward_weight",
+            weight,
+            "a weight in (0, 10] (1: the study's reward)",
         )?;
         let penalty = self.tilt_rate_penalty;
         check(

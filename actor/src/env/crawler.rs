@@ -22,8 +22,9 @@ const MAX_BASE_IMPACT_CHARGE: f32 = 5.0;
 /// decision was held for, so their scale per second does not depend on the action repeat.
 #[derive(Debug, Clone, Copy, Default, PartialEq)]
 pub struct Reward {
-    /// `0.5·(1 − e^(−100·dx))` for dx > 0, else `0.5·(−1 + e^(−100·|dx|))`, with dx the
-    /// base's x displacement in the rewarded direction.
+    /// `k·0.5·(1 − e^(−100·dx))` for dx > 0, else `k·0.5·(−1 + e^(−100·|dx|))`, with dx the
+    /// base's x displacement in the rewarded direction and k the env's
+    /// `position_reward_weight` (1, the study's, by default).
     pub position: f32,
     /// `0.5·(1 − |pitch|/π)`, pitch being the base's rotation about y (xyz Euler angles).
     pub upright: f32,
@@ -42,12 +43,14 @@ impl Reward {
 
     /// The largest |total| one decision can earn under `config`, which the learner uses to
     /// reject out-of-range rewards from the network. Each physics step earns a position reward
-    /// in (−0.5, 0.5), an upright reward in [0, 0.5] and a tilt-rate charge in [−0.5, 0], so
-    /// at most 1 in magnitude, plus a landing charge of at most [`MAX_BASE_IMPACT_CHARGE`]
-    /// where the env charges landings; the margin covers rounding.
+    /// in (−0.5·k, 0.5·k) (k the env's `position_reward_weight`), an upright reward in
+    /// [0, 0.5] and a tilt-rate charge in [−0.5, 0], so at most 0.5·k + 0.5 in magnitude, plus
+    /// a landing charge of at most [`MAX_BASE_IMPACT_CHARGE`] where the env charges landings;
+    /// the margin covers rounding.
     pub fn max_abs_total(config: &EnvConfig) -> f32 {
         let landing = if config.base_impact_penalty > 0.0 { MAX_BASE_IMPACT_CHARGE } else { 0.0 };
-        1.01 * (1.0 + landing) * config.action_repeat as f32
+        let per_step = 0.5 * config.position_reward_weight + 0.5 + landing;
+        1.01 * per_step * config.action_repeat as f32
     }
 }
 
@@ -274,7 +277,7 @@ impl Crawler {
             self.physics_step(torques);
             let dx = direction * (self.base_x() - x_before);
             reward += Reward {
-                position: position_reward(dx),
+                position: self.config.position_reward_weight * position_reward(dx),
                 upright: upright_reward(self.base_rotation()),
                 tilt_rate: self.tilt_rate_reward(),
                 base_impact: self.base_impact_reward(),

@@ -661,6 +661,8 @@ mod tests {
             ("env.max_tilt_deg=nan", "env.max_tilt_deg"),
             ("env.contact_prediction=nan", "env.contact_prediction"),
             ("env.base_impact_threshold=-inf", "env.base_impact_threshold"),
+            ("env.position_reward_weight=0.0", "env.position_reward_weight"),
+            ("env.position_reward_weight=nan", "env.position_reward_weight"),
         ] {
             let err = TrainConfig::from_toml("", "test", &[assignment.into()]).unwrap_err().to_string();
             assert!(err.contains(key), "{assignment}: {err}");
