@@ -309,6 +309,22 @@ fn the_landing_penalty_charges_hard_base_landings_and_not_resting_weight() {
     assert_eq!((heavy.reward.position, heavy.reward.upright), (plain.reward.position, plain.reward.upright));
 }
 
+/// Plays the tumbling gait for 2 000 decisions under `config`, asserts that every decision's
+/// reward lies within `Reward::max_abs_total(&config)`, and returns the largest |reward|.
+fn largest_reward_of_a_tumbling_gait_within_its_bound(config: EnvConfig) -> f32 {
+    let bound = Reward::max_abs_total(&config);
+    let decision_seconds = config.action_repeat as f32 * config.dt;
+    let mut crawler = Crawler::new(config, 0);
+    let mut largest = 0.0_f32;
+    for decision in 0..2_000_u32 {
+        let torques = SquareWaveGait::TUMBLES_IN_MUJOCO.torques(decision as f32 * decision_seconds);
+        let total = crawler.step_torques(torques).reward.total();
+        assert!(total.abs() <= bound, "decision {decision}: reward {total} beyond the bound {bound}");
+        largest = largest.max(total.abs());
+    }
+    largest
+}
+
 #[test]
 fn every_decisions_reward_lies_within_the_bound_the_learner_enforces() {
     // The learner rejects a transition batch holding a reward beyond `Reward::max_abs_total`;
@@ -318,19 +334,8 @@ fn every_decisions_reward_lies_within_the_bound_the_learner_enforces() {
     // coarse 10 ms physics step lets a landing's charge reach its per-step cap.
     let config =
         EnvConfig { base_impact_penalty: 10.0, base_impact_threshold: 0.0, action_repeat: 6, dt: 0.01, ..endless() };
-    let bound = Reward::max_abs_total(&config);
     let unpenalised_bound = Reward::max_abs_total(&EnvConfig { base_impact_penalty: 0.0, ..config.clone() });
-    let mut crawler = Crawler::new(config, 0);
-    let decision_seconds = 6.0 * crawler.config().dt;
-    let mut harshest = 0.0_f32;
-    for decision in 0..2_000_u32 {
-        let total = crawler
-            .step_torques(SquareWaveGait::TUMBLES_IN_MUJOCO.torques(decision as f32 * decision_seconds))
-            .reward
-            .total();
-        assert!(total.abs() <= bound, "decision {decision}: reward {total} beyond the bound {bound}");
-        harshest = harshest.max(total.abs());
-    }
+    let harshest = largest_reward_of_a_tumbling_gait_within_its_bound(config);
     assert!(
         harshest > unpenalised_bound,
         "the landing charge should need the wider bound: {harshest} vs {unpenalised_bound}"
@@ -361,17 +366,8 @@ fn the_position_weight_scales_the_position_reward_and_nothing_else() {
     // weight a coarse-stepped tumbling gait's rewards stay inside it, and some exceed the
     // study's bound, which would have dropped them.
     let config = EnvConfig { position_reward_weight: 10.0, action_repeat: 6, dt: 0.01, ..endless() };
-    let bound = Reward::max_abs_total(&config);
     let study_bound = Reward::max_abs_total(&EnvConfig { position_reward_weight: 1.0, ..config.clone() });
-    let mut crawler = Crawler::new(config, 0);
-    let decision_seconds = 6.0 * crawler.config().dt;
-    let mut largest = 0.0_f32;
-    for decision in 0..2_000_u32 {
-        let torques = SquareWaveGait::TUMBLES_IN_MUJOCO.torques(decision as f32 * decision_seconds);
-        let total = crawler.step_torques(torques).reward.total();
-        assert!(total.abs() <= bound, "decision {decision}: reward {total} beyond the bound {bound}");
-        largest = largest.max(total.abs());
-    }
+    let largest = largest_reward_of_a_tumbling_gait_within_its_bound(config);
     assert!(largest > study_bound, "the weight should need the wider bound: {largest} vs {study_bound}");
 }
 
