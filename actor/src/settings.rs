@@ -168,6 +168,7 @@ impl From<&EnvConfig> for proto::EnvSettings {
                     observation_noise: r.observation_noise,
                     push_interval_s: r.push_interval_s,
                     push_roll_rate: r.push_roll_rate,
+                    floor_contact_hz: r.floor_contact_hz.to_vec(),
                 }
             }),
         }
@@ -193,6 +194,7 @@ impl TryFrom<&proto::RandomizationSettings> for Randomization {
             observation_noise: r.observation_noise,
             push_interval_s: r.push_interval_s,
             push_roll_rate: r.push_roll_rate,
+            floor_contact_hz: pair(&r.floor_contact_hz, "env.randomization.floor_contact_hz")?,
         })
     }
 }
@@ -308,6 +310,7 @@ mod tests {
         settings.env.randomization.latency_steps = [0, 2];
         settings.env.randomization.push_interval_s = 1.5;
         settings.env.randomization.push_roll_rate = 4.0;
+        settings.env.randomization.floor_contact_hz = [60.0, 2000.0];
         settings.exploration = Exploration::Decay { start: 1.0, factor: 0.99, every: 100, min: 0.05 };
         let wire = proto::ActorSettings::from(&settings);
         assert_eq!(ActorSettings::try_from(&wire), Ok(settings.clone()));

@@ -559,6 +559,44 @@ fn a_generalized_state_reads_back_as_written_and_replays_a_trajectory() {
 }
 
 #[test]
+fn a_stiffer_floor_stops_a_drop_more_sharply_and_zero_keeps_rapiers_floor() {
+    use crawler_actor::env::{EpisodePhysics, Randomization};
+    // The crawler settles, is lifted 5 cm, held still and dropped with its motors off. Returns the peak
+    // normal force on the base, the deepest its bottom sinks below the floor (m), and the
+    // floor stiffness the episode drew.
+    let drop = |hz: [f32; 2]| {
+        let randomization = Randomization { floor_contact_hz: hz, ..Randomization::default() };
+        let mut crawler = Crawler::new(EnvConfig { randomization, ..endless() }, 0);
+        for _ in 0..500 {
+            crawler.step_torques([0.0, 0.0]);
+        }
+        let mut lifted = crawler.generalized_state();
+        let resting_z = lifted.qpos[2];
+        lifted.qpos[2] += 0.05;
+        lifted.qvel = [0.0; 8];
+        crawler.set_generalized_state(&lifted).expect("a lifted resting state is valid");
+        let (mut peak, mut deepest) = (0.0_f32, 0.0_f32);
+        for _ in 0..300 {
+            crawler.step_torques([0.0, 0.0]);
+            peak = peak.max(crawler.base_contact_force());
+            deepest = deepest.max(resting_z - crawler.generalized_state().qpos[2]);
+        }
+        (peak, deepest, crawler.episode_physics().floor_contact_hz)
+    };
+    let own = drop([0.0, 0.0]);
+    assert_eq!(own.2, EpisodePhysics::NOMINAL_FLOOR_CONTACT_HZ);
+    assert_eq!(drop([60.0, 60.0]), own, "[0, 0] is rapier's 60 Hz floor, bit for bit");
+    let stiff = drop([2000.0, 2000.0]);
+    assert_eq!(stiff.2, 2000.0);
+    // Session 18: from the same states MuJoCo's base lands in sharper pulses than this
+    // engine's at 60 Hz. rapier stops an impact with a velocity constraint whatever the
+    // stiffness, which sets how fast the remaining overlap is pushed out: a stiffer floor
+    // holds the base a little higher and pushes back a little harder (about 8 % here).
+    assert!(stiff.0 > own.0, "a 2 kHz floor stops the drop with a higher peak: {stiff:?} against {own:?}");
+    assert!(stiff.1 < own.1, "and lets the base sink less: {stiff:?} against {own:?}");
+}
+
+#[test]
 fn roll_pushes_tip_the_crawler_sideways_and_only_when_asked() {
     use crawler_actor::env::Randomization;
     // The largest roll (degrees) of a crawler holding still for 2 s, and its final tilt.

@@ -35,7 +35,9 @@ pub use validate::{ProtoError, SequenceTracker, TransitionLimits};
 ///    of the return; an older actor would train on another reward.
 /// 9: the env settings carry the position reward's weight (`EnvSettings.position_reward_weight`);
 ///    an older actor would train on the study's weight whatever the learner's config says.
-pub const PROTOCOL_VERSION: u32 = 9;
+/// 10: the physics randomisation carries the floor contacts' stiffness
+///    (`RandomizationSettings.floor_contact_hz`); an older actor would simulate other physics.
+pub const PROTOCOL_VERSION: u32 = 10;
 
 /// Largest encoded message a node accepts, in bytes. The largest legal messages: a batch of
 /// [`MAX_BATCH_TRANSITIONS`] transitions of 40 values (about 1.4 MB) and the weights of a

@@ -198,6 +198,8 @@ pub struct RandomizationSettings {
     pub push_interval_s: f32,
     #[prost(float, tag = "8")]
     pub push_roll_rate: f32,
+    #[prost(float, repeated, tag = "9")]
+    pub floor_contact_hz: Vec<f32>,
 }
 
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, PartialOrd, Ord, prost::Enumeration)]

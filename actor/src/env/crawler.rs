@@ -845,6 +845,12 @@ fn build_world(config: &EnvConfig, physics: &EpisodePhysics, q1: f32, q2: f32) -
         num_solver_iterations: config.solver_iterations as usize,
         // length_unit is 1 (metres), so the normalized distance is the distance.
         normalized_prediction_distance: config.contact_prediction,
+        // Every contact with the floor is one with a fixed body, and only those: the
+        // randomised stiffness stands for how sharply the floor stops a landing.
+        static_contact_softness: SpringCoefficients {
+            natural_frequency: physics.floor_contact_hz,
+            ..SpringCoefficients::contact_static_defaults()
+        },
         ..IntegrationParameters::default()
     };
     let mut world =

@@ -40,6 +40,13 @@ pub struct Randomization {
     pub push_interval_s: f32,
     /// Largest roll rate a push adds, rad/s; each push draws uniformly from ±this.
     pub push_roll_rate: f32,
+    /// Natural frequency of the floor's contacts in Hz (rapier's `static_contact_softness`);
+    /// `[0, 0]` keeps rapier's own (60 Hz). From the same states the study's model lands the
+    /// base in sharper pulses, 2.2× this engine's landing impulse at 60 Hz, and stiffer
+    /// contacts close most of that gap but move the trajectory elsewhere (EXPERIMENTS.md,
+    /// "Session 18"), so no single value is faithful: a policy trained over a range must
+    /// cope with both kinds of landing.
+    pub floor_contact_hz: [f32; 2],
 }
 
 impl Default for Randomization {
@@ -53,6 +60,7 @@ impl Default for Randomization {
             observation_noise: 0.0,
             push_interval_s: 0.0,
             push_roll_rate: 0.0,
+            floor_contact_hz: [0.0, 0.0],
         }
     }
 }
@@ -75,6 +83,7 @@ impl Randomization {
         observation_noise: 0.0,
         push_interval_s: 1.0,
         push_roll_rate: 2.5,
+        floor_contact_hz: [0.0, 0.0],
     };
 
     /// Whether any range draws something other than the env's nominal physics.
@@ -130,10 +139,21 @@ impl Randomization {
         if !(rate.is_finite() && (0.0..=50.0).contains(&rate)) {
             return error("randomization.push_roll_rate", rate.to_string(), "a number in [0, 50] rad/s");
         }
+        let [low, high] = self.floor_contact_hz;
+        let frequency_ok = |hz: f32| hz.is_finite() && (1.0..=MAX_FLOOR_CONTACT_HZ).contains(&hz);
+        if !((low == 0.0 && high == 0.0) || (frequency_ok(low) && frequency_ok(high) && low <= high)) {
+            return error(
+                "randomization.floor_contact_hz",
+                format!("{:?}", [low, high]),
+                "[0, 0] (rapier's own) or [low, high] within [1, 100000] Hz",
+            );
+        }
         Ok(())
     }
 
-    /// One episode's physics. Draws nothing when the randomisation is off.
+    /// One episode's physics. Draws nothing when the randomisation is off, and nothing for a
+    /// range left at its "keep the env's own" value, so adding a range leaves the draws of
+    /// configurations without it as they were.
     pub fn draw(&self, nominal_timeconst: f32, rng: &mut ChaCha8Rng) -> EpisodePhysics {
         if !self.is_active() {
             return EpisodePhysics::nominal(nominal_timeconst);
@@ -149,6 +169,12 @@ impl Randomization {
         };
         let [low, high] = self.latency_steps;
         let latency_steps = if high > low { rng.random_range(low..=high) } else { low };
+        let floor_contact_hz = if self.floor_contact_hz == [0.0, 0.0] {
+            EpisodePhysics::NOMINAL_FLOOR_CONTACT_HZ
+        } else {
+            let [low, high] = self.floor_contact_hz;
+            if high > low { rng.random_range(low..=high) } else { low }
+        };
         EpisodePhysics {
             friction_scale,
             mass_scale,
@@ -158,6 +184,7 @@ impl Randomization {
             observation_noise: self.observation_noise,
             push_interval_s: self.push_interval_s,
             push_roll_rate: self.push_roll_rate,
+            floor_contact_hz,
         }
     }
 }
@@ -175,9 +202,16 @@ pub struct EpisodePhysics {
     /// Seconds between roll pushes (0: none) and their largest roll rate, rad/s.
     pub push_interval_s: f32,
     pub push_roll_rate: f32,
+    /// Natural frequency of the floor's contacts, Hz.
+    pub floor_contact_hz: f32,
 }
 
 impl EpisodePhysics {
+    /// rapier's own stiffness for contacts with a fixed body (the floor), which this env keeps
+    /// unless randomised: 60 Hz (`SpringCoefficients::contact_static_defaults`, which
+    /// `nominal_floor_contact_hz_is_rapiers_default` holds to it).
+    pub const NOMINAL_FLOOR_CONTACT_HZ: f32 = 60.0;
+
     /// The env's own physics: no scaling, no latency, no noise, no pushes.
     pub fn nominal(joint_limit_timeconst: f32) -> Self {
         Self {
@@ -189,9 +223,15 @@ impl EpisodePhysics {
             observation_noise: 0.0,
             push_interval_s: 0.0,
             push_roll_rate: 0.0,
+            floor_contact_hz: Self::NOMINAL_FLOOR_CONTACT_HZ,
         }
     }
 }
+
+/// Stiffest floor contact a randomisation may draw, Hz: 10 kHz already lands the base with
+/// 0.91× MuJoCo's impulse (EXPERIMENTS.md, "Session 18"); beyond 100 kHz the spring is far
+/// stiffer than one 2 ms step can resolve.
+pub const MAX_FLOOR_CONTACT_HZ: f32 = 100_000.0;
 
 #[cfg(test)]
 mod tests {
@@ -214,7 +254,29 @@ mod tests {
             assert!(physics.motor_strength.iter().all(|m| (0.8..=1.0).contains(m)));
             assert!((0.01..=0.04).contains(&physics.joint_limit_timeconst));
             assert!(physics.latency_steps <= 2);
+            assert_eq!(physics.floor_contact_hz, EpisodePhysics::NOMINAL_FLOOR_CONTACT_HZ);
         }
+
+        let stiffer = Randomization { floor_contact_hz: [60.0, 2000.0], ..ranges };
+        stiffer.validate().unwrap();
+        let drawn: Vec<f32> = (0..200).map(|_| stiffer.draw(0.05, &mut rng).floor_contact_hz).collect();
+        assert!(drawn.iter().all(|hz| (60.0..=2000.0).contains(hz)));
+        assert!(drawn.iter().any(|&hz| hz > 1000.0) && drawn.iter().any(|&hz| hz < 1000.0), "{drawn:?}");
+
+        // The floor's stiffness is drawn after everything else, so the same seed draws the
+        // same other physics with or without it: runs of configurations written before the
+        // range existed replay as they were.
+        let (mut a, mut b) = (ChaCha8Rng::seed_from_u64(7), ChaCha8Rng::seed_from_u64(7));
+        let with_floor = stiffer.draw(0.05, &mut a);
+        let without = ranges.draw(0.05, &mut b);
+        assert_ne!(with_floor.floor_contact_hz, without.floor_contact_hz);
+        assert_eq!(EpisodePhysics { floor_contact_hz: without.floor_contact_hz, ..with_floor }, without);
+    }
+
+    #[test]
+    fn nominal_floor_contact_hz_is_rapiers_default() {
+        let rapier = rapier3d::dynamics::SpringCoefficients::<f32>::contact_static_defaults();
+        assert_eq!(EpisodePhysics::NOMINAL_FLOOR_CONTACT_HZ, rapier.natural_frequency);
     }
 
     #[test]
@@ -229,5 +291,9 @@ mod tests {
         assert_eq!(bad.validate().unwrap_err().key, "randomization.push_interval_s");
         let bad = Randomization { push_roll_rate: f32::INFINITY, ..Randomization::default() };
         assert_eq!(bad.validate().unwrap_err().key, "randomization.push_roll_rate");
+        for hz in [[0.0, 60.0], [2000.0, 60.0], [60.0, f32::NAN], [60.0, 1e6]] {
+            let bad = Randomization { floor_contact_hz: hz, ..Randomization::default() };
+            assert_eq!(bad.validate().unwrap_err().key, "randomization.floor_contact_hz", "{hz:?}");
+        }
     }
 }

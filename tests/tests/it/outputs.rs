@@ -181,6 +181,22 @@ fn eval_runs_a_checkpoint_in_the_studys_layout() {
     assert_eq!(report["episodes"].as_array().unwrap().len(), 2);
     assert!((report["episodes"][1]["duration"].as_f64().unwrap() - 0.5).abs() < 1e-3);
     assert_eq!(report, eval(), "deterministic for fixed seeds");
+    assert!(report["perturbations"].is_null(), "nominal physics: {report}");
+
+    // `env.randomization.*` overrides state the evaluation's own physics (the checkpoint's
+    // randomisation never applies), and the report lists them; a bad range is named.
+    let stiff_floor = "env.randomization.floor_contact_hz=[2000.0, 2000.0]";
+    let args = [dir.path().to_str().unwrap(), "--episodes", "2", "--seconds", "0.5", "--set", stiff_floor];
+    let stiff: serde_json::Value = serde_json::from_slice(&run("eval", &args).stdout).unwrap();
+    assert_eq!(stiff["perturbations"]["floor_contact_hz"], serde_json::json!([2000.0, 2000.0]), "{stiff}");
+    assert_eq!(stiff["perturbations"]["friction_scale"], serde_json::json!([1.0, 1.0]), "on the nominal rest");
+    let output = Command::new(binary("eval"))
+        .args([dir.path().to_str().unwrap(), "--set", "env.randomization.floor_contact_hz=[5.0, 1.0]"])
+        .output()
+        .unwrap();
+    assert!(!output.status.success());
+    let message = String::from_utf8_lossy(&output.stderr);
+    assert!(message.contains("floor_contact_hz"), "{message}");
 }
 
 #[test]

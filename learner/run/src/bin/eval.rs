@@ -9,6 +9,7 @@
 use std::path::PathBuf;
 
 use clap::Parser;
+use crawler_run::config::TrainConfig;
 use crawler_run::evaluate::{EVAL_SEED, STUCK_SPEED, evaluation_env, greedy_episode, load_policy};
 use serde::Serialize;
 use tracing::info;
@@ -33,6 +34,9 @@ struct Args {
     #[arg(long)]
     perturbed: bool,
     /// Override an env setting of the checkpoint's config, e.g. --set env.direction=backward.
+    /// `env.randomization.*` keys state the evaluation's physics instead, on top of the nominal
+    /// physics (or --perturbed's), e.g. --set 'env.randomization.floor_contact_hz=[2000,2000]'
+    /// (the training's randomisation never applies to an evaluation; the report lists them).
     #[arg(long = "set", value_name = "KEY=VALUE")]
     overrides: Vec<String>,
 }
@@ -69,10 +73,21 @@ fn mean_std(values: impl Iterator<Item = f64> + Clone) -> MeanStd {
 fn main() -> anyhow::Result<()> {
     crawler_cli::init_logging();
     let args = Args::parse();
-    let loaded = load_policy(&args.checkpoint, &args.overrides)?;
+    // An evaluation never inherits the training's randomisation, so `env.randomization.*`
+    // overrides cannot go to the checkpoint's config, where they would vanish without a word:
+    // they are applied to the evaluation's own physics instead.
+    let (physics_overrides, config_overrides): (Vec<String>, Vec<String>) =
+        args.overrides.iter().cloned().partition(|assignment| assignment.trim_start().starts_with("env.randomization"));
+    let loaded = load_policy(&args.checkpoint, &config_overrides)?;
     let mut env = evaluation_env(&loaded.config.env, args.seconds)?;
     if args.perturbed {
         env.randomization = crawler_actor::env::Randomization::EVAL_PERTURBATIONS;
+    }
+    if !physics_overrides.is_empty() {
+        let mut stated = loaded.config.clone();
+        stated.env.randomization = env.randomization.clone();
+        let stated = TrainConfig::from_json(&serde_json::to_value(&stated)?, "eval's physics", &physics_overrides)?;
+        env.randomization = stated.env.randomization;
     }
     info!(checkpoint = %loaded.path.display(), updates = loaded.meta.progress.updates, "evaluating");
 
@@ -102,7 +117,7 @@ fn main() -> anyhow::Result<()> {
     let min_speed = episodes.iter().map(|e| e.speed).fold(f32::INFINITY, f32::min);
     let stuck = episodes.iter().filter(|e| e.speed < STUCK_SPEED).count();
     eprintln!(
-        "{}: speed {:.3} ± {:.3} m/s (min {min_speed:.3}, {stuck} stuck below {STUCK_SPEED} m/s), distance {:.2} ± {:.2} m, return {:.1} ± {:.1}, base landings {:.2} N·s over {} N, flips {flips} over {} episodes of {} s",
+        "{}: speed {:.3} ± {:.3} m/s (min {min_speed:.3}, {stuck} stuck below {STUCK_SPEED} m/s), distance {:.2} ± {:.2} m, return {:.1} ± {:.1}, base landings {:.2} N·s over {} N, flips {flips} over {} episodes of {} s on {} physics",
         loaded.path.display(),
         speed.mean,
         speed.std,
@@ -113,7 +128,8 @@ fn main() -> anyhow::Result<()> {
         impact.mean,
         env.base_impact_threshold,
         episodes.len(),
-        args.seconds
+        args.seconds,
+        if env.randomization.is_active() { "perturbed (the report lists how)" } else { "the nominal" }
     );
     let report = serde_json::json!({
         "checkpoint": loaded.path,
@@ -125,7 +141,7 @@ fn main() -> anyhow::Result<()> {
         "action_repeat": env.action_repeat,
         "direction": env.direction,
         "seconds": args.seconds,
-        "perturbations": args.perturbed.then_some(&env.randomization),
+        "perturbations": env.randomization.is_active().then_some(&env.randomization),
         "episodes": episodes,
         "speed": speed,
         "min_speed": min_speed,
