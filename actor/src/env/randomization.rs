@@ -8,6 +8,7 @@
 //! draw nothing, so an unrandomised env is bit-for-bit what it was.
 
 use rand::Rng;
+use rand::distr::uniform::SampleUniform;
 use rand_chacha::ChaCha8Rng;
 use serde::{Deserialize, Serialize};
 
@@ -110,15 +111,21 @@ impl Randomization {
         scale("randomization.friction_scale", self.friction_scale, 10.0)?;
         scale("randomization.mass_scale", self.mass_scale, 10.0)?;
         scale("randomization.motor_strength", self.motor_strength, 2.0)?;
-        let [low, high] = self.joint_limit_timeconst;
-        let timeconst_ok = |t: f32| t.is_finite() && (0.001..=1.0).contains(&t);
-        if !((low == 0.0 && high == 0.0) || (timeconst_ok(low) && timeconst_ok(high) && low <= high)) {
-            return error(
-                "randomization.joint_limit_timeconst",
-                format!("{:?}", [low, high]),
-                "[0, 0] (the env's own) or [low, high] within [0.001, 1] s",
-            );
-        }
+        // A range that may also be [0, 0], "keep the env's own value".
+        let own_or_within = |key: &'static str, [low, high]: [f32; 2], [min, max]: [f32; 2], allowed: &'static str| {
+            let ok = |v: f32| v.is_finite() && (min..=max).contains(&v);
+            if (low == 0.0 && high == 0.0) || (ok(low) && ok(high) && low <= high) {
+                Ok(())
+            } else {
+                error(key, format!("{:?}", [low, high]), allowed)
+            }
+        };
+        own_or_within(
+            "randomization.joint_limit_timeconst",
+            self.joint_limit_timeconst,
+            [0.001, 1.0],
+            "[0, 0] (the env's own) or [low, high] within [0.001, 1] s",
+        )?;
         let [low, high] = self.latency_steps;
         if !(low <= high && high <= 50) {
             return error(
@@ -139,15 +146,12 @@ impl Randomization {
         if !(rate.is_finite() && (0.0..=50.0).contains(&rate)) {
             return error("randomization.push_roll_rate", rate.to_string(), "a number in [0, 50] rad/s");
         }
-        let [low, high] = self.floor_contact_hz;
-        let frequency_ok = |hz: f32| hz.is_finite() && (1.0..=MAX_FLOOR_CONTACT_HZ).contains(&hz);
-        if !((low == 0.0 && high == 0.0) || (frequency_ok(low) && frequency_ok(high) && low <= high)) {
-            return error(
-                "randomization.floor_contact_hz",
-                format!("{:?}", [low, high]),
-                "[0, 0] (rapier's own) or [low, high] within [1, 100000] Hz",
-            );
-        }
+        own_or_within(
+            "randomization.floor_contact_hz",
+            self.floor_contact_hz,
+            [1.0, MAX_FLOOR_CONTACT_HZ],
+            "[0, 0] (rapier's own) or [low, high] within [1, 100000] Hz",
+        )?;
         Ok(())
     }
 
@@ -158,23 +162,20 @@ impl Randomization {
         if !self.is_active() {
             return EpisodePhysics::nominal(nominal_timeconst);
         }
-        let mut uniform = |[low, high]: [f32; 2]| if high > low { rng.random_range(low..=high) } else { low };
-        let friction_scale = uniform(self.friction_scale);
-        let mass_scale = [uniform(self.mass_scale), uniform(self.mass_scale), uniform(self.mass_scale)];
-        let motor_strength = [uniform(self.motor_strength), uniform(self.motor_strength)];
-        let joint_limit_timeconst = if self.joint_limit_timeconst == [0.0, 0.0] {
-            nominal_timeconst
-        } else {
-            uniform(self.joint_limit_timeconst)
-        };
-        let [low, high] = self.latency_steps;
-        let latency_steps = if high > low { rng.random_range(low..=high) } else { low };
-        let floor_contact_hz = if self.floor_contact_hz == [0.0, 0.0] {
-            EpisodePhysics::NOMINAL_FLOOR_CONTACT_HZ
-        } else {
-            let [low, high] = self.floor_contact_hz;
+        fn uniform<T: SampleUniform + PartialOrd + Copy>(rng: &mut ChaCha8Rng, [low, high]: [T; 2]) -> T {
             if high > low { rng.random_range(low..=high) } else { low }
+        }
+        // [0, 0] keeps the env's own value and draws nothing.
+        let own_or_uniform = |rng: &mut ChaCha8Rng, own: f32, range: [f32; 2]| {
+            if range == [0.0, 0.0] { own } else { uniform(rng, range) }
         };
+        // The order of the draws is part of a seed's meaning: a new range is drawn last.
+        let friction_scale = uniform(rng, self.friction_scale);
+        let mass_scale = [uniform(rng, self.mass_scale), uniform(rng, self.mass_scale), uniform(rng, self.mass_scale)];
+        let motor_strength = [uniform(rng, self.motor_strength), uniform(rng, self.motor_strength)];
+        let joint_limit_timeconst = own_or_uniform(rng, nominal_timeconst, self.joint_limit_timeconst);
+        let latency_steps = uniform(rng, self.latency_steps);
+        let floor_contact_hz = own_or_uniform(rng, EpisodePhysics::NOMINAL_FLOOR_CONTACT_HZ, self.floor_contact_hz);
         EpisodePhysics {
             friction_scale,
             mass_scale,
