@@ -111,6 +111,10 @@ pub struct CheckpointMeta {
     /// The run's full configuration, for the record and for `--resume`.
     pub config: serde_json::Value,
     pub files: BTreeMap<String, FileDigest>,
+    /// The checkpoints whose weights this one averages (`crate::average`), oldest first;
+    /// empty for a checkpoint the learner wrote from its own weights.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub averaged_from: Vec<String>,
 }
 
 /// A loaded checkpoint.
@@ -189,14 +193,31 @@ pub fn save(
     config: &serde_json::Value,
     keep: usize,
 ) -> Result<PathBuf, CheckpointError> {
+    let name = format!("{PREFIX}{:012}", progress.updates);
+    let final_path = write_named(dir, &name, snapshot, run_id, progress, config, Vec::new())?;
+    prune(dir, keep)?;
+    Ok(final_path)
+}
+
+/// Writes a checkpoint of `snapshot` as `dir/name`, replacing one of that name whole: its
+/// files go to a temporary directory first, which is renamed into place once complete and
+/// kept only if it loads back. `averaged_from` goes to `meta.json` as it is.
+pub(crate) fn write_named(
+    dir: &Path,
+    name: &str,
+    snapshot: &Snapshot<'_>,
+    run_id: &str,
+    progress: &Progress,
+    config: &serde_json::Value,
+    averaged_from: Vec<String>,
+) -> Result<PathBuf, CheckpointError> {
     for (values, which) in [(snapshot.online, "online"), (snapshot.target, "target")] {
         if !values.iter().all(|v| v.is_finite()) {
             return Err(CheckpointError::NonFinite(dir.to_path_buf(), which));
         }
     }
     fs::create_dir_all(dir).map_err(io("create", dir))?;
-    let name = format!("{PREFIX}{:012}", progress.updates);
-    let final_path = dir.join(&name);
+    let final_path = dir.join(name);
     let temp = dir.join(format!("{name}{TEMP_MARKER}{}", std::process::id()));
     if temp.exists() {
         fs::remove_dir_all(&temp).map_err(io("remove", &temp))?;
@@ -233,6 +254,7 @@ pub fn save(
         adam_step: snapshot.adam_step,
         config: config.clone(),
         files,
+        averaged_from,
     };
     let json = serde_json::to_vec_pretty(&meta).map_err(|e| corrupt(&temp.join(META), e))?;
     write_synced(&temp.join(META), &|w| w.write_all(&json))?;
@@ -251,7 +273,6 @@ pub fn save(
         let _ = fs::remove_dir_all(&final_path);
         return Err(CheckpointError::Unreadable { path: final_path, source: Box::new(error) });
     }
-    prune(dir, keep)?;
     Ok(final_path)
 }
 

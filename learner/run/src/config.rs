@@ -239,6 +239,9 @@ pub struct LearnerSection {
     /// Write a checkpoint every this many updates (0: only at the end).
     pub checkpoint_every: u64,
     pub keep_checkpoints: usize,
+    /// At the end of a run, average the weights of this many newest checkpoints into
+    /// `checkpoints/average` (`crate::average`; 0: off). At most `keep_checkpoints`.
+    pub average_checkpoints: usize,
     /// Greedy episodes each periodic checkpoint is evaluated on, the best one being kept as
     /// `checkpoints/best` (`crate::best`; 0: off).
     pub best_episodes: u32,
@@ -270,6 +273,7 @@ impl Default for LearnerSection {
             weights_every: 50,
             checkpoint_every: 5_000,
             keep_checkpoints: 3,
+            average_checkpoints: 0,
             best_episodes: 0,
             best_seconds: 20.0,
             best_perturbed: false,
@@ -467,6 +471,20 @@ impl TrainConfig {
         if l.keep_checkpoints == 0 {
             return Err(invalid("learner.keep_checkpoints", "0".into(), "at least 1"));
         }
+        if l.average_checkpoints == 1 || l.average_checkpoints > l.keep_checkpoints {
+            return Err(invalid(
+                "learner.average_checkpoints",
+                l.average_checkpoints.to_string(),
+                "0 (off) or from 2 up to learner.keep_checkpoints (only kept checkpoints can be averaged)",
+            ));
+        }
+        if l.average_checkpoints > 0 && l.checkpoint_every == 0 {
+            return Err(invalid(
+                "learner.average_checkpoints",
+                l.average_checkpoints.to_string(),
+                "0 when learner.checkpoint_every is 0 (it averages periodic checkpoints)",
+            ));
+        }
         if l.best_episodes > 1000 {
             return Err(invalid(
                 "learner.best_episodes",
@@ -643,6 +661,22 @@ mod tests {
                     number + 1
                 );
             }
+        }
+    }
+
+    /// Only kept, periodic checkpoints can be averaged, and one checkpoint is no average.
+    #[test]
+    fn averaging_asks_for_two_to_keep_checkpoints_of_a_run_that_checkpoints() {
+        let ok = ["learner.keep_checkpoints=20".into(), "learner.average_checkpoints=20".into()];
+        assert_eq!(TrainConfig::from_toml("", "test", &ok).unwrap().learner.average_checkpoints, 20);
+        for overrides in [
+            vec!["learner.average_checkpoints=1"],
+            vec!["learner.keep_checkpoints=3", "learner.average_checkpoints=4"],
+            vec!["learner.keep_checkpoints=5", "learner.average_checkpoints=5", "learner.checkpoint_every=0"],
+        ] {
+            let overrides: Vec<String> = overrides.into_iter().map(String::from).collect();
+            let err = TrainConfig::from_toml("", "test", &overrides).unwrap_err().to_string();
+            assert!(err.contains("learner.average_checkpoints"), "{overrides:?}: {err}");
         }
     }
 

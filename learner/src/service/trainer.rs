@@ -291,6 +291,24 @@ impl<'a> Trainer<'a> {
         self.telemetry.tick(now, every, self.run_id, self.run_dir, self.links.shared);
     }
 
+    /// `checkpoints/average`, when the config asks for it. A run whose average fails (too
+    /// few checkpoints yet, say) still ends well: its checkpoints are all there, and the
+    /// `average` tool can write it later.
+    fn average_checkpoints(&self) {
+        let count = self.config.learner.average_checkpoints;
+        if count == 0 {
+            return;
+        }
+        let dir = self.run_dir.join("checkpoints");
+        match crawler_run::average::average_newest(&dir, count) {
+            Ok(path) => info!(checkpoints = count, "weight average of the newest checkpoints: {}", path.display()),
+            Err(error) => warn!(
+                "no weight average of the newest checkpoints: {error}; once there are enough, run `average {} --last {count}`",
+                dir.display()
+            ),
+        }
+    }
+
     /// The last metrics and the final checkpoint.
     fn finish(mut self) -> Result<Outcome, ServiceError> {
         // What arrived since the last flush still reaches the metrics.
@@ -298,6 +316,7 @@ impl<'a> Trainer<'a> {
         self.telemetry.flush(self.links.shared, seconds, env_steps);
         let path = self.save_checkpoint(self.config.learner.snapshot_replay)?;
         info!(updates = self.progress.updates, env_steps, "final checkpoint {}", path.display());
+        self.average_checkpoints();
         Ok(Outcome { progress: self.progress, last_checkpoint: Some(path) })
     }
 }

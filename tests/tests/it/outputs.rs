@@ -10,9 +10,9 @@ use std::time::Duration;
 
 use crawler_learner::algo::dqn::Dqn;
 use crawler_learner::checkpoint::{self, Progress};
-use crawler_run::best;
 use crawler_run::config::TrainConfig;
 use crawler_run::metrics;
+use crawler_run::{average, best};
 use crawler_tests::{Learner, binary, free_port, repo_root};
 
 fn run(binary_name: &str, args: &[&str]) -> Output {
@@ -123,10 +123,16 @@ fn a_run_writes_metrics_that_plot_and_render_turn_into_pictures() {
     assert_eq!(report["frames"], 51);
 }
 
+/// Also the weight average: the learner writes `checkpoints/average` at the end of the run,
+/// and the `average` tool redoes it over another window.
 #[test]
 fn the_best_checkpoint_by_greedy_evaluation_is_kept_and_eval_reproduces_it() {
     let runs = tempfile::tempdir().unwrap();
     let args = [
+        "--set",
+        "learner.keep_checkpoints=3",
+        "--set",
+        "learner.average_checkpoints=2",
         "--set",
         "learner.best_episodes=2",
         "--set",
@@ -157,6 +163,28 @@ fn the_best_checkpoint_by_greedy_evaluation_is_kept_and_eval_reproduces_it() {
     assert!(newest.file_name().unwrap().to_str().unwrap().starts_with("step-"), "{}", newest.display());
     // The learner waited for the evaluation in progress: no candidate copy is left behind.
     assert!(!checkpoints.join(".best-candidate").exists());
+
+    // The average of the two newest checkpoints (the final one among them): a checkpoint
+    // like the others, beside them, that eval plays.
+    let kept_steps = checkpoint::list(&checkpoints).unwrap();
+    let names: Vec<String> = kept_steps.iter().map(|p| p.file_name().unwrap().to_string_lossy().into_owned()).collect();
+    let average_dir = checkpoints.join(average::AVERAGE_DIR);
+    let average = checkpoint::load(&average_dir).unwrap();
+    assert_eq!(average.meta.averaged_from, names[names.len() - 2..], "kept: {names:?}");
+    assert_eq!(checkpoint::latest(&checkpoints).unwrap(), newest, "the average is not a step- checkpoint");
+    let newest_weights = checkpoint::load(&newest).unwrap().online;
+    assert_ne!(average.online, newest_weights, "an average of two different checkpoints");
+    run("eval", &[average_dir.to_str().unwrap(), "--episodes", "1", "--seconds", "0.5"]);
+    // The tool: over all three kept, its path on stdout; over more than are kept, an error
+    // that says what to do.
+    let output = run("average", &[checkpoints.to_str().unwrap(), "--last", "3"]);
+    assert_eq!(String::from_utf8_lossy(&output.stdout).trim(), average_dir.to_str().unwrap());
+    assert_eq!(checkpoint::load(&average_dir).unwrap().meta.averaged_from, names);
+    let output =
+        Command::new(binary("average")).args([checkpoints.to_str().unwrap(), "--last", "50"]).output().unwrap();
+    assert!(!output.status.success());
+    let stderr = String::from_utf8_lossy(&output.stderr);
+    assert!(stderr.contains("fewer than the 50") && stderr.contains("learner.keep_checkpoints"), "{stderr}");
 }
 
 #[test]
@@ -242,6 +270,7 @@ fn init_from_copies_another_runs_networks_and_refuses_a_different_one() {
 /// `scripts/train-transfer`, the transfer recipe in one command, on budgets of seconds: the
 /// warm-up trains the default preset, the transfer stage trains the transfer preset from the
 /// warm-up's newest weights with the learning-rate anneal, and both runs leave checkpoints.
+/// (The weight average at its end is tested with the best checkpoint's test.)
 #[test]
 fn the_transfer_recipe_trains_the_transfer_preset_from_the_warm_ups_weights() {
     let runs = tempfile::tempdir().unwrap();
@@ -272,6 +301,11 @@ fn the_transfer_recipe_trains_the_transfer_preset_from_the_warm_ups_weights() {
         "the transfer stage did not start from the warm-up: {log}"
     );
     assert!(log.contains("scripts/mujoco-check eval"), "no pointer to the cross-check: {log}");
+    // Three seconds leave fewer than the 20 checkpoints the preset averages: the run still
+    // ends well, and the log says how to average later.
+    let later = format!("`average {} --last 20`", runs.path().join("recipe/checkpoints").display());
+    assert!(log.contains("no weight average of the newest checkpoints") && log.contains(&later), "{log}");
+    assert!(!runs.path().join("recipe/checkpoints/average").exists());
 
     // A misspelt knob is refused before anything trains, naming it.
     let output = Command::new(repo_root().join("scripts/train-transfer"))
