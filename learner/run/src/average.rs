@@ -57,12 +57,8 @@ pub fn average_newest(dir: &Path, count: usize) -> Result<PathBuf, AverageError>
         let loaded = if *path == newest.path { None } else { Some(checkpoint::load(path)?) };
         let each = loaded.as_ref().unwrap_or(&newest);
         check_same_run(each, &newest)?;
-        for (sum, value) in online.iter_mut().zip(&each.online) {
-            *sum += f64::from(*value);
-        }
-        for (sum, value) in target.iter_mut().zip(&each.target) {
-            *sum += f64::from(*value);
-        }
+        accumulate(&mut online, &each.online);
+        accumulate(&mut target, &each.target);
         names.push(path.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_default());
     }
     let mean = |sums: Vec<f64>| -> Vec<f32> { sums.into_iter().map(|sum| (sum / count as f64) as f32).collect() };
@@ -78,6 +74,13 @@ pub fn average_newest(dir: &Path, count: usize) -> Result<PathBuf, AverageError>
     };
     let meta = &newest.meta;
     Ok(checkpoint::write_named(dir, AVERAGE_DIR, &snapshot, &meta.run_id, &meta.progress, &meta.config, names)?)
+}
+
+/// Adds `values` into `sums` in f64, so that averaging 20 checkpoints loses no f32 precision.
+fn accumulate(sums: &mut [f64], values: &[f32]) {
+    for (sum, value) in sums.iter_mut().zip(values) {
+        *sum += f64::from(*value);
+    }
 }
 
 /// Weights of different runs or networks do not average into anything meaningful.
