@@ -267,7 +267,7 @@ fn init_from_copies_another_runs_networks_and_refuses_a_different_one() {
     assert!(message.contains("--init-from") && message.contains("network"), "{message}");
 }
 
-/// `scripts/train-transfer`, the transfer recipe in one command, on budgets of seconds: the
+/// `scripts/train-transfer`, the transfer recipe in one command, on tiny budgets: the
 /// warm-up trains the default preset until its update budget (WARM_UPDATES, before its
 /// seconds run out), the transfer stage trains the transfer preset from the warm-up's newest
 /// weights with the learning-rate anneal, and both runs leave checkpoints.
