@@ -17,6 +17,7 @@ use std::fs;
 use std::path::{Path, PathBuf};
 
 use serde::{Deserialize, Serialize};
+use tracing::{info, warn};
 
 use crawler_actor::env::Randomization;
 
@@ -154,8 +155,25 @@ impl BestKeeper {
     /// there (a resumed run) is the one to beat.
     /// A best evaluated with another plan, or under another set of perturbations, is not
     /// comparable: it is replaced by the first candidate.
+    /// A crash between `consider`'s two renames leaves the old best only as its copy
+    /// `.best-previous`; that copy is put back as `checkpoints/best` here, so a restart finds
+    /// the best it had rather than none.
     pub fn new(checkpoints: &Path, plan: EvaluationPlan) -> Self {
-        let record = checkpoints.join(BEST_DIR).join(EVALUATION_FILE);
+        let best_dir = checkpoints.join(BEST_DIR);
+        let previous = checkpoints.join(PREVIOUS_DIR);
+        if !best_dir.exists() && previous.exists() {
+            match fs::rename(&previous, &best_dir) {
+                Ok(()) => {
+                    info!(best = %best_dir.display(), "restored the best checkpoint an interrupted swap left aside")
+                }
+                Err(e) => warn!(
+                    "could not restore {} as {}: {e}; the run keeps a new best from its next checkpoint",
+                    previous.display(),
+                    best_dir.display()
+                ),
+            }
+        }
+        let record = best_dir.join(EVALUATION_FILE);
         let best = fs::read(&record)
             .ok()
             .and_then(|bytes| serde_json::from_slice::<Evaluation>(&bytes).ok())
@@ -185,7 +203,7 @@ impl BestKeeper {
                 .map_err(|source| BestError::Json { path: record.clone(), source })?;
             fs::write(&record, json).map_err(io("write", &record))?;
             // The old best is moved aside, not deleted, until the new one is in place: a crash
-            // in between leaves a best (or its copy) on disk, never none.
+            // in between leaves a best (or its copy, which `new` puts back) on disk, never none.
             let best = self.checkpoints.join(BEST_DIR);
             let previous = self.checkpoints.join(PREVIOUS_DIR);
             if previous.exists() {
@@ -253,6 +271,26 @@ mod tests {
         assert!(!evaluation(0.3, 0, 0).beats(&clean));
         assert!(!evaluation(0.4, 0, 0).beats(&clean));
         assert!(evaluation(0.2, 1, 0).beats(&evaluation(0.1, 0, 2)));
+    }
+
+    #[test]
+    fn a_best_left_aside_by_an_interrupted_swap_is_restored() {
+        let checkpoints = tempfile::tempdir().unwrap();
+        let plan = EvaluationPlan { episodes: 5, seconds: 20.0, perturbed: true };
+        let recorded = Evaluation { perturbed: true, perturbations: plan.perturbations(), ..evaluation(0.5, 0, 0) };
+        // The state after `best` was renamed aside and before the candidate took its place.
+        let previous = checkpoints.path().join(PREVIOUS_DIR);
+        fs::create_dir_all(&previous).unwrap();
+        fs::write(previous.join(EVALUATION_FILE), serde_json::to_vec(&recorded).unwrap()).unwrap();
+        let keeper = BestKeeper::new(checkpoints.path(), plan);
+        assert_eq!(keeper.best(), Some(&recorded));
+        assert!(checkpoints.path().join(BEST_DIR).join(EVALUATION_FILE).is_file());
+        assert!(!previous.exists());
+        // With a best in place, a leftover copy is not swapped in over it.
+        fs::create_dir_all(&previous).unwrap();
+        let older = Evaluation { mean_speed: 0.1, ..recorded.clone() };
+        fs::write(previous.join(EVALUATION_FILE), serde_json::to_vec(&older).unwrap()).unwrap();
+        assert_eq!(BestKeeper::new(checkpoints.path(), plan).best(), Some(&recorded));
     }
 
     #[test]
