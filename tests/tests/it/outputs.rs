@@ -270,7 +270,8 @@ fn init_from_copies_another_runs_networks_and_refuses_a_different_one() {
 /// `scripts/train-transfer`, the transfer recipe in one command, on tiny budgets: the
 /// warm-up trains the default preset until its update budget (WARM_UPDATES, before its
 /// seconds run out), the transfer stage trains the transfer preset from the warm-up's newest
-/// weights with the learning-rate anneal, and both runs leave checkpoints.
+/// weights with the learning-rate anneal until its own update budget (TRANSFER_UPDATES), and
+/// both runs leave checkpoints.
 /// (The weight average at its end is tested with the best checkpoint's test.)
 #[test]
 fn the_transfer_recipe_trains_the_transfer_preset_from_the_warm_ups_weights() {
@@ -282,7 +283,13 @@ fn the_transfer_recipe_trains_the_transfer_preset_from_the_warm_ups_weights() {
         .args(["recipe", "--", "--set", &listen])
         .env("CRAWLER_BIN_DIR", &bin_dir)
         .env("RUNS_DIR", runs.path())
-        .envs([("WARM_UPDATES", "40"), ("WARM_SECONDS", "120"), ("TRANSFER_SECONDS", "3"), ("ANNEAL_UPDATES", "1234")])
+        .envs([
+            ("WARM_UPDATES", "40"),
+            ("WARM_SECONDS", "120"),
+            ("TRANSFER_UPDATES", "30"),
+            ("TRANSFER_SECONDS", "120"),
+            ("ANNEAL_UPDATES", "1234"),
+        ])
         // No MuJoCo venv there: the recipe names the cross-check instead of running it.
         .env("CRAWLER_MUJOCO_VENV", runs.path().join("no-venv"))
         .output()
@@ -295,6 +302,7 @@ fn the_transfer_recipe_trains_the_transfer_preset_from_the_warm_ups_weights() {
     assert_eq!(warm.meta.config["env"]["action_repeat"], 10, "the warm-up is the default preset");
     assert_eq!(warm.meta.progress.updates, 40, "the warm-up stops at WARM_UPDATES, not at its seconds");
     assert_eq!(transfer.meta.config["env"]["action_repeat"], 3, "the second stage is the transfer preset");
+    assert_eq!(transfer.meta.progress.updates, 30, "the transfer stage stops at TRANSFER_UPDATES, not at its seconds");
     assert_eq!(transfer.meta.config["dqn"]["lr_decay"]["updates"], 1234);
     assert_eq!(transfer.meta.config["dqn"]["lr_decay"]["final_lr"], 2.5e-5);
     let from = runs.path().join("recipe-warm/checkpoints");
@@ -303,7 +311,7 @@ fn the_transfer_recipe_trains_the_transfer_preset_from_the_warm_ups_weights() {
         "the transfer stage did not start from the warm-up: {log}"
     );
     assert!(log.contains("scripts/mujoco-check eval"), "no pointer to the cross-check: {log}");
-    // Three seconds leave fewer than the 20 checkpoints the preset averages: the run still
+    // Thirty updates leave fewer than the 20 checkpoints the preset averages: the run still
     // ends well, and the log says how to average later.
     let later = format!("`average {} --last 20`", runs.path().join("recipe/checkpoints").display());
     assert!(log.contains("no weight average of the newest checkpoints") && log.contains(&later), "{log}");
