@@ -268,10 +268,11 @@ fn init_from_copies_another_runs_networks_and_refuses_a_different_one() {
 }
 
 /// `scripts/train-transfer`, the transfer recipe in one command, on tiny budgets: the
-/// warm-up trains the default preset until its update budget (WARM_UPDATES, before its
-/// seconds run out), the transfer stage trains the transfer preset from the warm-up's newest
-/// weights with the learning-rate anneal until its own update budget (TRANSFER_UPDATES), and
-/// both runs leave checkpoints.
+/// warm-up trains the default preset until its seconds run out (WARM_SECONDS, before an update
+/// budget it cannot reach, so the recipe warns that it trained less than the measured one and
+/// by how much to raise them), the transfer stage trains the transfer preset from the
+/// warm-up's newest weights with the learning-rate anneal until its own update budget
+/// (TRANSFER_UPDATES, before its seconds: no warning), and both runs leave checkpoints.
 /// (The weight average at its end is tested with the best checkpoint's test.)
 #[test]
 fn the_transfer_recipe_trains_the_transfer_preset_from_the_warm_ups_weights() {
@@ -284,8 +285,8 @@ fn the_transfer_recipe_trains_the_transfer_preset_from_the_warm_ups_weights() {
         .env("CRAWLER_BIN_DIR", &bin_dir)
         .env("RUNS_DIR", runs.path())
         .envs([
-            ("WARM_UPDATES", "40"),
-            ("WARM_SECONDS", "120"),
+            ("WARM_UPDATES", "1000000"),
+            ("WARM_SECONDS", "8"),
             ("TRANSFER_UPDATES", "30"),
             ("TRANSFER_SECONDS", "120"),
             ("ANNEAL_UPDATES", "1234"),
@@ -300,7 +301,13 @@ fn the_transfer_recipe_trains_the_transfer_preset_from_the_warm_ups_weights() {
     let warm = checkpoint::load(&runs.path().join("recipe-warm/checkpoints")).unwrap();
     let transfer = checkpoint::load(&runs.path().join("recipe/checkpoints")).unwrap();
     assert_eq!(warm.meta.config["env"]["action_repeat"], 10, "the warm-up is the default preset");
-    assert_eq!(warm.meta.progress.updates, 40, "the warm-up stops at WARM_UPDATES, not at its seconds");
+    let made = warm.meta.progress.updates;
+    assert!(made < 1_000_000, "the warm-up stops at WARM_SECONDS, not at its updates");
+    // Named after the stage and again at the end, where it is read.
+    let shortfall = format!("warning: the warm-up stopped at its 8 s with {made} of its 1000000 updates");
+    assert_eq!(log.matches(&*shortfall).count(), 2, "{log}");
+    assert!(log.contains("WARM_SECONDS"), "the warning does not name the knob to raise: {log}");
+    assert!(!log.contains("the transfer stage stopped"), "the transfer stage met its budget: {log}");
     assert_eq!(transfer.meta.config["env"]["action_repeat"], 3, "the second stage is the transfer preset");
     assert_eq!(transfer.meta.progress.updates, 30, "the transfer stage stops at TRANSFER_UPDATES, not at its seconds");
     assert_eq!(transfer.meta.config["dqn"]["lr_decay"]["updates"], 1234);
