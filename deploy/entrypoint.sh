@@ -1,6 +1,6 @@
 #!/bin/sh
 # Entry point of both crawler images: runs the image's program (CRAWLER_PROGRAM: `actor` or
-# `learner`), or the tool named first (`eval`, `average`, `plot`, `render`, in both images), as an
+# `learner`), or the tool named first (`eval`, `average`, `pick`, `plot`, `render`, in both images), as an
 # unprivileged user.
 #
 # Why it starts as root and then drops to that user, as the official database images do:
@@ -19,9 +19,9 @@
 set -eu
 program="${CRAWLER_PROGRAM:?the image sets CRAWLER_PROGRAM}"
 case "${1:-}" in
-    actor | learner | eval | average | plot | render)
+    actor | learner | eval | average | pick | plot | render)
         if [ ! -x "/usr/local/bin/$1" ]; then
-            echo "crawler-entrypoint: this image has no $1 (the learner image has learner, eval, average, plot and render; the actor image has actor, eval, average, plot and render)" >&2
+            echo "crawler-entrypoint: this image has no $1 (the learner image has learner, eval, average, pick, plot and render; the actor image has actor, eval, average, pick, plot and render)" >&2
             exit 2
         fi
         program="$1"

@@ -10,7 +10,7 @@ release="${1:?usage: stage-binaries.sh RELEASE_DIR OUT}"
 out="${2:?usage: stage-binaries.sh RELEASE_DIR OUT}"
 rm -rf "$out/bin" "$out/lib"
 mkdir -p "$out/bin" "$out/lib"
-for binary in actor learner eval average plot render; do
+for binary in actor learner eval average pick plot render; do
     cp "$release/$binary" "$out/bin/"
     strip "$out/bin/$binary"
 done

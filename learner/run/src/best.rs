@@ -69,6 +69,11 @@ pub struct Evaluation {
     pub min_speed: f64,
     pub flips: u32,
     pub stuck_episodes: u32,
+    /// Episodes that flipped the base at least once or got stuck (absent in records older
+    /// than this field: 0). A tumbling gait flips many times in one episode, so `flips` says
+    /// how violently and this how often.
+    #[serde(default)]
+    pub failed_episodes: u32,
 }
 
 impl Evaluation {
@@ -120,11 +125,12 @@ pub fn evaluate_checkpoint(path: &Path, plan: EvaluationPlan) -> Result<Evaluati
         env.randomization = perturbations.clone();
     }
     let mut speeds = Vec::with_capacity(episodes as usize);
-    let mut flips = 0;
+    let (mut flips, mut failed_episodes) = (0, 0);
     for i in 0..u64::from(episodes) {
         let (summary, _) = greedy_episode(&loaded.policy, &env, EVAL_SEED + i, false)?;
         speeds.push(f64::from(summary.speed));
         flips += summary.flips;
+        failed_episodes += u32::from(summary.flips > 0 || summary.speed < STUCK_SPEED);
     }
     let name = loaded.path.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_default();
     Ok(Evaluation {
@@ -139,6 +145,7 @@ pub fn evaluate_checkpoint(path: &Path, plan: EvaluationPlan) -> Result<Evaluati
         min_speed: speeds.iter().copied().fold(f64::INFINITY, f64::min),
         flips,
         stuck_episodes: speeds.iter().filter(|&&s| s < f64::from(STUCK_SPEED)).count() as u32,
+        failed_episodes,
     })
 }
 
@@ -257,6 +264,7 @@ mod tests {
             min_speed: 0.0,
             flips,
             stuck_episodes,
+            failed_episodes: flips.max(stuck_episodes).min(5),
         }
     }
 

@@ -272,8 +272,9 @@ fn init_from_copies_another_runs_networks_and_refuses_a_different_one() {
 /// budget it cannot reach, so the recipe warns that it trained less than the measured one and
 /// by how much to raise them), the transfer stage trains the transfer preset from the
 /// warm-up's newest weights with the learning-rate anneal until its own update budget
-/// (TRANSFER_UPDATES, before its seconds: no warning), and both runs leave checkpoints.
-/// (The weight average at its end is tested with the best checkpoint's test.)
+/// (TRANSFER_UPDATES, before its seconds: no warning), both runs leave checkpoints, and
+/// `pick` plays every candidate left (PICK_EPISODES perturbed episodes each) and names the
+/// one to ship. (The weight average at its end is tested with the best checkpoint's test.)
 #[test]
 fn the_transfer_recipe_trains_the_transfer_preset_from_the_warm_ups_weights() {
     let runs = tempfile::tempdir().unwrap();
@@ -290,6 +291,7 @@ fn the_transfer_recipe_trains_the_transfer_preset_from_the_warm_ups_weights() {
             ("TRANSFER_UPDATES", "30"),
             ("TRANSFER_SECONDS", "120"),
             ("ANNEAL_UPDATES", "1234"),
+            ("PICK_EPISODES", "2"),
         ])
         // No MuJoCo venv there: the recipe names the cross-check instead of running it.
         .env("CRAWLER_MUJOCO_VENV", runs.path().join("no-venv"))
@@ -317,7 +319,23 @@ fn the_transfer_recipe_trains_the_transfer_preset_from_the_warm_ups_weights() {
         log.lines().any(|line| line.contains("networks initialised from") && line.contains(&*from.to_string_lossy())),
         "the transfer stage did not start from the warm-up: {log}"
     );
-    assert!(log.contains("scripts/mujoco-check eval"), "no pointer to the cross-check: {log}");
+    // Thirty updates leave no average (below); the candidates are the last checkpoint and,
+    // where the best-keeper got to one, the best.
+    let checkpoints = runs.path().join("recipe/checkpoints");
+    let expected: Vec<_> =
+        [checkpoints.clone(), checkpoints.join("best")].into_iter().filter(|candidate| candidate.exists()).collect();
+    let record = std::fs::read(checkpoints.join("pick.json")).expect("the recipe records its pick");
+    let selection: crawler_run::pick::Selection = serde_json::from_slice(&record).unwrap();
+    let played: Vec<_> = selection.candidates.iter().map(|candidate| candidate.path.clone()).collect();
+    assert_eq!(played, expected);
+    for candidate in &selection.candidates {
+        let evaluation = candidate.evaluation.as_ref().unwrap_or_else(|why| panic!("{why}"));
+        assert_eq!((evaluation.episodes, evaluation.perturbed), (2, true), "{candidate}");
+        assert!(evaluation.failed_episodes <= 2);
+    }
+    let ship = selection.chosen().path.display().to_string();
+    assert!(log.contains(&format!("the checkpoint to ship: {ship}")), "{log}");
+    assert!(log.contains(&format!("scripts/mujoco-check eval {ship}")), "no pointer to the cross-check: {log}");
     // Thirty updates leave fewer than the 20 checkpoints the preset averages: the run still
     // ends well, and the log says how to average later.
     let later = format!("`average {} --last 20`", runs.path().join("recipe/checkpoints").display());

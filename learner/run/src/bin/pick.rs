@@ -1,0 +1,65 @@
+//! `pick`: the checkpoint to ship among a run's candidates, by how often each fails under
+//! `eval --perturbed`'s physics (`crawler_run::pick` says why).
+//!
+//! `pick runs/<run>/checkpoints/average runs/<run>/checkpoints runs/<run>/checkpoints/best`.
+//! List the preferred candidate first: an exact tie keeps it. The chosen path goes to stdout
+//! (for scripts), each candidate's numbers and a warning for a risky pick to stderr, and with
+//! `--record FILE` the whole selection as JSON to FILE.
+
+use std::io::Write;
+use std::path::PathBuf;
+
+use anyhow::Context;
+use clap::Parser;
+use crawler_run::best::EvaluationPlan;
+use crawler_run::pick::{failure_share, pick};
+use tracing::warn;
+
+#[derive(Debug, Parser)]
+#[command(version, about = "Pick the checkpoint that fails least under perturbed physics, then crawls fastest")]
+struct Args {
+    /// Checkpoint directories (step-…, average, best) or directories of them (the newest is
+    /// taken); the preferred first.
+    #[arg(required = true)]
+    candidates: Vec<PathBuf>,
+    /// Perturbed episodes per candidate; episode i uses `eval`'s seed + i, so
+    /// `eval --perturbed --episodes N` reproduces each candidate's numbers.
+    #[arg(long, default_value_t = 100)]
+    episodes: u32,
+    /// Simulated seconds per episode.
+    #[arg(long, default_value_t = 20.0)]
+    seconds: f32,
+    /// Write the selection (every candidate's evaluation, the chosen one) as JSON here.
+    #[arg(long)]
+    record: Option<PathBuf>,
+}
+
+fn main() -> anyhow::Result<()> {
+    crawler_cli::init_logging();
+    let args = Args::parse();
+    anyhow::ensure!(args.episodes > 0, "--episodes must be at least 1");
+    let plan = EvaluationPlan { episodes: args.episodes, seconds: args.seconds, perturbed: true };
+    let selection = pick(&args.candidates, plan)?;
+    for candidate in &selection.candidates {
+        eprintln!("pick: {candidate}");
+    }
+    let chosen = selection.chosen();
+    eprintln!("pick: the checkpoint to ship: {}", chosen.path.display());
+    if let Some(evaluation) = selection.chosen_evaluation().filter(|_| selection.risky()) {
+        warn!(
+            "even the pick failed in {:.0} % of its perturbed episodes (above {:.0} %): runs like it tumbled on the \
+             study's MuJoCo model (EXPERIMENTS.md, sessions 25-26); play it there (scripts/mujoco-check eval {}) or \
+             train another seed",
+            100.0 * failure_share(evaluation),
+            100.0 * selection.risky_failure_share,
+            chosen.path.display()
+        );
+    }
+    if let Some(record) = &args.record {
+        let json = serde_json::to_vec_pretty(&selection)?;
+        std::fs::write(record, json).with_context(|| format!("writing the selection to {}", record.display()))?;
+    }
+    let mut stdout = std::io::stdout().lock();
+    writeln!(stdout, "{}", chosen.path.display())?;
+    Ok(())
+}
