@@ -22,10 +22,11 @@ use serde::{Deserialize, Serialize};
 use crate::best::{Evaluation, EvaluationPlan, evaluate_checkpoint};
 use crate::evaluate::EvaluateError;
 
-/// Above this share of failed perturbed episodes the pick is reported as a risk. Session 25's
-/// averages that crawled upright on the study's model failed in at most 8 % of 100 (its
-/// `s25-s0`), the one that tumbled there in 25 % or more (25 stuck alone); the line sits
-/// between them, and EXPERIMENTS.md ("Session 26") records the runs it was checked on.
+/// Above this share of failed perturbed episodes the pick is reported as a risk. The average
+/// that tumbled on the study's model in session 25 failed in 25 % or more (25 stuck alone, 203
+/// flips); the candidates of session 27's run, all upright there, in 9-12 %. The line sits
+/// between them; EXPERIMENTS.md ("Session 27") records the runs it was checked on, too few yet
+/// to call it more than a first estimate.
 pub const RISKY_FAILURE_SHARE: f64 = 0.15;
 
 #[derive(Debug, thiserror::Error)]
