@@ -125,12 +125,14 @@ pub fn evaluate_checkpoint(path: &Path, plan: EvaluationPlan) -> Result<Evaluati
         env.randomization = perturbations.clone();
     }
     let mut speeds = Vec::with_capacity(episodes as usize);
-    let (mut flips, mut failed_episodes) = (0, 0);
+    let (mut flips, mut stuck_episodes, mut failed_episodes) = (0, 0, 0);
     for i in 0..u64::from(episodes) {
         let (summary, _) = greedy_episode(&loaded.policy, &env, EVAL_SEED + i, false)?;
         speeds.push(f64::from(summary.speed));
         flips += summary.flips;
-        failed_episodes += u32::from(summary.flips > 0 || summary.speed < STUCK_SPEED);
+        let stuck = summary.speed < STUCK_SPEED;
+        stuck_episodes += u32::from(stuck);
+        failed_episodes += u32::from(stuck || summary.flips > 0);
     }
     let name = loaded.path.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_default();
     Ok(Evaluation {
@@ -144,7 +146,7 @@ pub fn evaluate_checkpoint(path: &Path, plan: EvaluationPlan) -> Result<Evaluati
         mean_speed: speeds.iter().sum::<f64>() / speeds.len().max(1) as f64,
         min_speed: speeds.iter().copied().fold(f64::INFINITY, f64::min),
         flips,
-        stuck_episodes: speeds.iter().filter(|&&s| s < f64::from(STUCK_SPEED)).count() as u32,
+        stuck_episodes,
         failed_episodes,
     })
 }
