@@ -15,19 +15,25 @@
 //! reproduces each number), never MuJoCo's: the study's model is the held-out check, and a
 //! pick made by playing it there would be tuned to it.
 
+use std::num::NonZeroUsize;
 use std::path::{Path, PathBuf};
+use std::sync::atomic::{AtomicUsize, Ordering};
 
 use serde::{Deserialize, Serialize};
 
 use crate::best::{Evaluation, EvaluationPlan, evaluate_checkpoint};
 use crate::evaluate::EvaluateError;
 
-/// Above this share of failed perturbed episodes the pick is reported as a risk. The average
-/// that tumbled on the study's model in session 25 failed in 25 % or more (25 stuck alone, 203
-/// flips); the candidates of session 27's run, all upright there, in 9-12 %. The line sits
-/// between them; EXPERIMENTS.md ("Session 27") records the runs it was checked on, too few yet
-/// to call it more than a first estimate.
+/// Above this share of failed perturbed episodes the pick is reported as a risk. The three
+/// candidates that tumbled on the study's model failed in 19 %, 22 % and 25 % or more
+/// (sessions 28 and 25); the seven that crawled there upright in 1-12 % (sessions 27 and 28).
+/// The line sits between them; EXPERIMENTS.md ("Session 28") records the runs it was checked
+/// on, too few yet to call it more than an estimate.
 pub const RISKY_FAILURE_SHARE: f64 = 0.15;
+
+/// `pick`'s exit status when it chose a checkpoint that is a risk (the path is still printed):
+/// scripts branch on it instead of on the wording of the warning.
+pub const RISKY_EXIT_CODE: u8 = 3;
 
 #[derive(Debug, thiserror::Error)]
 pub enum PickError {
@@ -71,6 +77,10 @@ pub struct Selection {
     /// Index into `candidates`.
     pub chosen: usize,
     pub risky_failure_share: f64,
+    /// Whether even the pick fails in more than `risky_failure_share` of its episodes
+    /// (recorded for readers of the JSON; `pick` also exits with [`RISKY_EXIT_CODE`]).
+    #[serde(default)]
+    pub risky: bool,
 }
 
 impl Selection {
@@ -85,7 +95,7 @@ impl Selection {
 
     /// Whether even the pick fails in more than [`RISKY_FAILURE_SHARE`] of its episodes.
     pub fn risky(&self) -> bool {
-        self.chosen_evaluation().is_some_and(|e| failure_share(e) > self.risky_failure_share)
+        self.risky
     }
 }
 
@@ -100,24 +110,27 @@ pub fn safer(a: &Evaluation, b: &Evaluation) -> bool {
     (a.failed_episodes, b.mean_speed) < (b.failed_episodes, a.mean_speed)
 }
 
-/// Plays every candidate under `plan` and picks the safest. A candidate that cannot be read
-/// or played is kept in the record with its error and never chosen; only when none can be
-/// played is that an error.
+/// Plays every candidate under `plan`, as many at once as the machine has cores, and picks
+/// the safest. A candidate that cannot be read or played is kept in the record with its error
+/// and never chosen; only when none can be played is that an error.
 pub fn pick(paths: &[PathBuf], plan: EvaluationPlan) -> Result<Selection, PickError> {
-    choose(paths, |path| evaluate_checkpoint(path, plan))
+    let workers = std::thread::available_parallelism().map_or(1, NonZeroUsize::get);
+    choose(paths, workers, |path| evaluate_checkpoint(path, plan))
 }
 
 /// [`pick`] with the evaluation passed in (the tests give canned ones).
 fn choose(
     paths: &[PathBuf],
-    mut evaluate: impl FnMut(&Path) -> Result<Evaluation, EvaluateError>,
+    workers: usize,
+    evaluate: impl Fn(&Path) -> Result<Evaluation, EvaluateError> + Sync,
 ) -> Result<Selection, PickError> {
     if paths.is_empty() {
         return Err(PickError::NoCandidates);
     }
-    let candidates: Vec<Candidate> = paths
-        .iter()
-        .map(|path| Candidate { path: path.clone(), evaluation: evaluate(path).map_err(|e| e.to_string()) })
+    let candidates: Vec<Candidate> = in_parallel(paths, workers, |path| evaluate(path).map_err(|e| e.to_string()))
+        .into_iter()
+        .zip(paths)
+        .map(|(evaluation, path)| Candidate { path: path.clone(), evaluation })
         .collect();
     let mut chosen: Option<(usize, &Evaluation)> = None;
     for (index, candidate) in candidates.iter().enumerate() {
@@ -128,13 +141,47 @@ fn choose(
         }
     }
     match chosen.map(|(index, _)| index) {
-        Some(chosen) => Ok(Selection { candidates, chosen, risky_failure_share: RISKY_FAILURE_SHARE }),
+        Some(chosen) => {
+            let risky = candidates[chosen]
+                .evaluation
+                .as_ref()
+                .is_ok_and(|evaluation| failure_share(evaluation) > RISKY_FAILURE_SHARE);
+            Ok(Selection { candidates, chosen, risky_failure_share: RISKY_FAILURE_SHARE, risky })
+        }
         None => {
             let count = candidates.len();
             let first = Box::new(candidates.into_iter().next().ok_or(PickError::NoCandidates)?);
             Err(PickError::NoneEvaluated { count, first })
         }
     }
+}
+
+/// `work` on every item, on up to `workers` threads that each take the next item not yet
+/// taken (candidates differ in how long their episodes take); the results in the items' order.
+/// Why not rayon: this is the workspace's one parallel loop, and it needs no more than this.
+fn in_parallel<I: Sync, T: Send>(items: &[I], workers: usize, work: impl Fn(&I) -> T + Sync) -> Vec<T> {
+    let next = AtomicUsize::new(0);
+    let mut results: Vec<(usize, T)> = std::thread::scope(|scope| {
+        let threads: Vec<_> = (0..workers.clamp(1, items.len().max(1)))
+            .map(|_| {
+                scope.spawn(|| {
+                    let mut done = Vec::new();
+                    loop {
+                        let index = next.fetch_add(1, Ordering::Relaxed);
+                        let Some(item) = items.get(index) else { break };
+                        done.push((index, work(item)));
+                    }
+                    done
+                })
+            })
+            .collect();
+        threads
+            .into_iter()
+            .flat_map(|thread| thread.join().unwrap_or_else(|panic| std::panic::resume_unwind(panic)))
+            .collect()
+    });
+    results.sort_by_key(|(index, _)| *index);
+    results.into_iter().map(|(_, result)| result).collect()
 }
 
 #[cfg(test)]
@@ -159,13 +206,29 @@ mod tests {
         }
     }
 
+    /// Candidate i is `candidate-i`, measured as `canned[i]` says (`None`: unreadable); on
+    /// two workers, as `pick` runs on a two-core machine.
     fn choose_from(canned: &[Option<Evaluation>]) -> Result<Selection, PickError> {
         let paths: Vec<PathBuf> = (0..canned.len()).map(|i| PathBuf::from(format!("candidate-{i}"))).collect();
-        let mut next = canned.iter();
-        choose(&paths, |path| match next.next().cloned().flatten() {
-            Some(evaluation) => Ok(evaluation),
-            None => Err(CheckpointError::NotFound(path.to_path_buf()).into()),
+        choose(&paths, 2, |path| {
+            let index = paths.iter().position(|p| p == path).expect("one of the paths");
+            canned[index].clone().ok_or_else(|| CheckpointError::NotFound(path.to_path_buf()).into())
         })
+    }
+
+    #[test]
+    fn parallel_work_keeps_the_items_order_whatever_the_workers() {
+        let items: Vec<u64> = (0..23).collect();
+        // Uneven work, so the threads finish out of order.
+        let slow_square = |&i: &u64| {
+            std::thread::sleep(std::time::Duration::from_micros((23 - i) * 200));
+            i * i
+        };
+        let expected: Vec<u64> = items.iter().map(|i| i * i).collect();
+        for workers in [0, 1, 2, 5, 64] {
+            assert_eq!(in_parallel(&items, workers, slow_square), expected, "{workers} workers");
+        }
+        assert!(in_parallel(&[] as &[u64], 2, slow_square).is_empty());
     }
 
     #[test]

@@ -51,6 +51,14 @@ fn a_learner_trains_on_two_actors_and_checkpoints() {
     assert!((first["min_speed"].as_f64().unwrap() - slowest).abs() < 1e-6, "{first:#}");
     let stuck = speeds.iter().filter(|&&v| v < first["stuck_below_speed"].as_f64().unwrap()).count() as u64;
     assert_eq!(first["stuck_episodes"].as_u64(), Some(stuck), "{first:#}");
+    let failed = first["episodes"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .zip(&speeds)
+        .filter(|(e, v)| **v < first["stuck_below_speed"].as_f64().unwrap() || e["flips"].as_u64() != Some(0))
+        .count() as u64;
+    assert_eq!(first["failed_episodes"].as_u64(), Some(failed), "{first:#}");
     assert!((first["episodes"][0]["duration"].as_f64().unwrap() - 2.0).abs() < 1e-3);
 }
 

@@ -335,6 +335,12 @@ fn the_transfer_recipe_trains_the_transfer_preset_from_the_warm_ups_weights() {
     }
     let ship = selection.chosen().path.display().to_string();
     assert!(log.contains(&format!("the checkpoint to ship: {ship}")), "{log}");
+    // Thirty updates rarely crawl, so the pick is usually a risk: `pick` says so with its
+    // exit status, and the recipe repeats it among its closing warnings but still ships it.
+    let failed = selection.chosen().evaluation.as_ref().map(|e| e.failed_episodes).unwrap_or_default();
+    assert_eq!(selection.risky, f64::from(failed) / 2.0 > selection.risky_failure_share, "{selection:?}");
+    assert_eq!(log.contains("warning: the pick is a risk"), selection.risky, "{log}");
+    assert!(!log.contains("could not evaluate"), "a risky pick is still a pick: {log}");
     assert!(log.contains(&format!("scripts/mujoco-check eval {ship}")), "no pointer to the cross-check: {log}");
     // Thirty updates leave fewer than the 20 checkpoints the preset averages: the run still
     // ends well, and the log says how to average later.

@@ -116,8 +116,10 @@ fn main() -> anyhow::Result<()> {
     let flips: u32 = episodes.iter().map(|e| e.flips).sum();
     let min_speed = episodes.iter().map(|e| e.speed).fold(f32::INFINITY, f32::min);
     let stuck = episodes.iter().filter(|e| e.speed < STUCK_SPEED).count();
+    // An episode that flipped or got stuck counts once: `pick` ranks candidates by this count.
+    let failed = episodes.iter().filter(|e| e.speed < STUCK_SPEED || e.flips > 0).count();
     eprintln!(
-        "{}: speed {:.3} ± {:.3} m/s (min {min_speed:.3}, {stuck} stuck below {STUCK_SPEED} m/s), distance {:.2} ± {:.2} m, return {:.1} ± {:.1}, base landings {:.2} N·s over {} N, flips {flips} over {} episodes of {} s on {} physics",
+        "{}: speed {:.3} ± {:.3} m/s (min {min_speed:.3}, {stuck} stuck below {STUCK_SPEED} m/s, {failed} failed: stuck or flipped), distance {:.2} ± {:.2} m, return {:.1} ± {:.1}, base landings {:.2} N·s over {} N, flips {flips} over {} episodes of {} s on {} physics",
         loaded.path.display(),
         speed.mean,
         speed.std,
@@ -147,6 +149,7 @@ fn main() -> anyhow::Result<()> {
         "min_speed": min_speed,
         "stuck_episodes": stuck,
         "stuck_below_speed": STUCK_SPEED,
+        "failed_episodes": failed,
         "distance": distance,
         "return": episode_return,
         "flips": flips,

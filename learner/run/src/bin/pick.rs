@@ -5,18 +5,28 @@
 //! List the preferred candidate first: an exact tie keeps it. The chosen path goes to stdout
 //! (for scripts), each candidate's numbers and a warning for a risky pick to stderr, and with
 //! `--record FILE` the whole selection as JSON to FILE.
+//!
+//! Exit status: 0 when a checkpoint was chosen, 3 (`RISKY_EXIT_CODE`) when it was chosen but
+//! is a risk (it still fails in more than 15 % of its episodes; the path is printed all the
+//! same), 1 when none could be evaluated.
 
 use std::io::Write;
 use std::path::PathBuf;
+use std::process::ExitCode;
 
 use anyhow::Context;
 use clap::Parser;
 use crawler_run::best::EvaluationPlan;
-use crawler_run::pick::{failure_share, pick};
+use crawler_run::pick::{RISKY_EXIT_CODE, failure_share, pick};
 use tracing::warn;
 
 #[derive(Debug, Parser)]
-#[command(version, about = "Pick the checkpoint that fails least under perturbed physics, then crawls fastest")]
+#[command(
+    version,
+    about = "Pick the checkpoint that fails least under perturbed physics, then crawls fastest",
+    after_help = "Exit status: 0 chosen; 3 chosen, but even it fails in more than 15 % of its episodes (a risk); \
+                  1 none could be evaluated. The chosen path goes to stdout in both the first cases."
+)]
 struct Args {
     /// Checkpoint directories (step-…, average, best) or directories of them (the newest is
     /// taken); the preferred first.
@@ -34,7 +44,7 @@ struct Args {
     record: Option<PathBuf>,
 }
 
-fn main() -> anyhow::Result<()> {
+fn main() -> anyhow::Result<ExitCode> {
     crawler_cli::init_logging();
     let args = Args::parse();
     anyhow::ensure!(args.episodes > 0, "--episodes must be at least 1");
@@ -48,7 +58,7 @@ fn main() -> anyhow::Result<()> {
     if let Some(evaluation) = selection.chosen_evaluation().filter(|_| selection.risky()) {
         warn!(
             "even the pick failed in {:.0} % of its perturbed episodes (above {:.0} %): runs like it tumbled on the \
-             study's MuJoCo model (EXPERIMENTS.md, sessions 25 and 27); play it there (scripts/mujoco-check eval {}) or \
+             study's MuJoCo model (EXPERIMENTS.md, sessions 25, 27 and 28); play it there (scripts/mujoco-check eval {}) or \
              train another seed",
             100.0 * failure_share(evaluation),
             100.0 * selection.risky_failure_share,
@@ -61,5 +71,6 @@ fn main() -> anyhow::Result<()> {
     }
     let mut stdout = std::io::stdout().lock();
     writeln!(stdout, "{}", chosen.path.display())?;
-    Ok(())
+    stdout.flush()?;
+    Ok(if selection.risky() { ExitCode::from(RISKY_EXIT_CODE) } else { ExitCode::SUCCESS })
 }
