@@ -7,8 +7,8 @@
 //! `--record FILE` the whole selection as JSON to FILE.
 //!
 //! Exit status: 0 when a checkpoint was chosen, 3 (`RISKY_EXIT_CODE`) when it was chosen but
-//! is a risk (it still fails in more than 15 % of its episodes; the path is printed all the
-//! same), 1 when none could be evaluated.
+//! is a risk (it still fails in more than `RISKY_FAILURE_SHARE` of its episodes, which the
+//! warning names; the path is printed all the same), 1 when none could be evaluated.
 
 use std::io::Write;
 use std::path::PathBuf;
@@ -24,8 +24,9 @@ use tracing::warn;
 #[command(
     version,
     about = "Pick the checkpoint that fails least under perturbed physics, then crawls fastest",
-    after_help = "Exit status: 0 chosen; 3 chosen, but even it fails in more than 15 % of its episodes (a risk); \
-                  1 none could be evaluated. The chosen path goes to stdout in both the first cases."
+    after_help = "Exit status: 0 chosen; 3 chosen, but even it fails in more of its episodes than the risk line \
+                  (a risk; the warning gives both shares); 1 none could be evaluated. The chosen path goes to \
+                  stdout in both the first cases."
 )]
 struct Args {
     /// Checkpoint directories (step-…, average, best) or directories of them (the newest is
