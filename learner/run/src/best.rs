@@ -21,7 +21,9 @@ use tracing::{info, warn};
 
 use crawler_actor::env::Randomization;
 
-use crate::evaluate::{EVAL_SEED, EvaluateError, STUCK_SPEED, evaluation_env, greedy_episode, load_policy};
+use crate::evaluate::{
+    EVAL_SEED, EvaluateError, STUCK_SPEED, episode_failed, evaluation_env, greedy_episode, load_policy,
+};
 
 /// The directory under `checkpoints/` that holds the best checkpoint.
 pub const BEST_DIR: &str = "best";
@@ -130,9 +132,8 @@ pub fn evaluate_checkpoint(path: &Path, plan: EvaluationPlan) -> Result<Evaluati
         let (summary, _) = greedy_episode(&loaded.policy, &env, EVAL_SEED + i, false)?;
         speeds.push(f64::from(summary.speed));
         flips += summary.flips;
-        let stuck = summary.speed < STUCK_SPEED;
-        stuck_episodes += u32::from(stuck);
-        failed_episodes += u32::from(stuck || summary.flips > 0);
+        stuck_episodes += u32::from(summary.speed < STUCK_SPEED);
+        failed_episodes += u32::from(episode_failed(summary.speed, summary.flips));
     }
     let name = loaded.path.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_default();
     Ok(Evaluation {

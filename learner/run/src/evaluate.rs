@@ -17,6 +17,12 @@ pub const EVAL_SEED: u64 = 1_000_000;
 /// An episode slower than this (m/s) is stuck: the crawler barely moved.
 pub const STUCK_SPEED: f32 = 0.05;
 
+/// Whether an episode failed: it got stuck or its base turned over. The one definition that
+/// `eval`'s `failed_episodes`, the best-checkpoint keeper and `pick` count.
+pub fn episode_failed(speed: f32, flips: u32) -> bool {
+    speed < STUCK_SPEED || flips > 0
+}
+
 #[derive(Debug, thiserror::Error)]
 pub enum EvaluateError {
     #[error(transparent)]

@@ -10,7 +10,7 @@ use std::path::PathBuf;
 
 use clap::Parser;
 use crawler_run::config::TrainConfig;
-use crawler_run::evaluate::{EVAL_SEED, STUCK_SPEED, evaluation_env, greedy_episode, load_policy};
+use crawler_run::evaluate::{EVAL_SEED, STUCK_SPEED, episode_failed, evaluation_env, greedy_episode, load_policy};
 use serde::Serialize;
 use tracing::info;
 
@@ -116,8 +116,8 @@ fn main() -> anyhow::Result<()> {
     let flips: u32 = episodes.iter().map(|e| e.flips).sum();
     let min_speed = episodes.iter().map(|e| e.speed).fold(f32::INFINITY, f32::min);
     let stuck = episodes.iter().filter(|e| e.speed < STUCK_SPEED).count();
-    // An episode that flipped or got stuck counts once: `pick` ranks candidates by this count.
-    let failed = episodes.iter().filter(|e| e.speed < STUCK_SPEED || e.flips > 0).count();
+    // An episode that flipped or got stuck (or both) counts once: `pick` ranks candidates by this count.
+    let failed = episodes.iter().filter(|e| episode_failed(e.speed, e.flips)).count();
     eprintln!(
         "{}: speed {:.3} ± {:.3} m/s (min {min_speed:.3}, {stuck} stuck below {STUCK_SPEED} m/s, {failed} failed: stuck or flipped), distance {:.2} ± {:.2} m, return {:.1} ± {:.1}, base landings {:.2} N·s over {} N, flips {flips} over {} episodes of {} s on {} physics",
         loaded.path.display(),
