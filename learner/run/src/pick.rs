@@ -24,11 +24,12 @@ use serde::{Deserialize, Serialize};
 use crate::best::{Evaluation, EvaluationPlan, evaluate_checkpoint};
 use crate::evaluate::EvaluateError;
 
-/// Above this share of failed perturbed episodes the pick is reported as a risk. The three
-/// candidates that tumbled on the study's model failed in 19 %, 22 % and 25 % or more
-/// (sessions 28 and 25); the seven that crawled there upright in 1-12 % (sessions 27 and 28).
-/// The line sits between them; EXPERIMENTS.md ("Session 28") records the runs it was checked
-/// on, too few yet to call it more than an estimate.
+/// Above this share of failed perturbed episodes the pick is reported as a risk. Of sixteen
+/// end-of-run candidates played on the study's model (EXPERIMENTS.md, sessions 25-29), the
+/// three above the line all tumbled there (19 %, 22 % and 25 % or more failed); of the
+/// thirteen below it, twelve crawled there upright (0-12 %) and one tumbled (11 %, seed 0's
+/// last checkpoint in session 29, which `pick` passed over for one that failed less). So a
+/// pick below the line is likelier upright, not certainly: the recipe still plays it there.
 pub const RISKY_FAILURE_SHARE: f64 = 0.15;
 
 /// `pick`'s exit status when it chose a checkpoint that is a risk (the path is still printed):
