@@ -30,6 +30,8 @@ use crate::evaluate::EvaluateError;
 /// thirteen below it, twelve crawled there upright (0-12 %) and one tumbled (11 %, seed 0's
 /// last checkpoint in session 29, which `pick` passed over for one that failed less). So a
 /// pick below the line is likelier upright, not certainly: the recipe still plays it there.
+/// The line is drawn for `configs/transfer.toml`: with its landing charge halved, all three
+/// candidates of a run tumbled there while failing in only 3-10 % (session 29).
 pub const RISKY_FAILURE_SHARE: f64 = 0.15;
 
 /// `pick`'s exit status when it chose a checkpoint that is a risk (the path is still printed):
