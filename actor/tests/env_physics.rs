@@ -432,7 +432,7 @@ fn bad_settings_are_rejected_by_name() {
         let bad = EnvConfig { tilt_rate_penalty: penalty, ..EnvConfig::default() };
         assert!(bad.validate().unwrap_err().to_string().contains("env.tilt_rate_penalty"), "{penalty}");
     }
-    for penalty in [-0.1, f32::NAN, 11.0] {
+    for penalty in [-0.1, f32::NAN, 51.0] {
         let bad = EnvConfig { base_impact_penalty: penalty, ..EnvConfig::default() };
         assert!(bad.validate().unwrap_err().to_string().contains("env.base_impact_penalty"), "{penalty}");
     }

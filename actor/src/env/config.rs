@@ -9,6 +9,12 @@ use super::randomization::Randomization;
 /// (`crawler_proto::validate::report_limits::MAX_ABS_RETURN`).
 pub const MAX_POSITION_REWARD_WEIGHT: f32 = 10.0;
 
+/// Largest `env.base_impact_penalty`, per N·s of base impulse over the threshold. The charge
+/// a physics step can take is capped on its own (at 5, in `crawler.rs`), so this bound is
+/// not what keeps returns inside the protocol's limits; it only refuses weights far beyond
+/// any measured (EXPERIMENTS.md: 5–17).
+pub const MAX_BASE_IMPACT_PENALTY: f32 = 50.0;
+
 /// Which way along x the crawler is rewarded for moving.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, Default)]
 #[serde(rename_all = "lowercase")]
@@ -214,10 +220,10 @@ impl EnvConfig {
         )?;
         let penalty = self.base_impact_penalty;
         check(
-            penalty.is_finite() && (0.0..=10.0).contains(&penalty),
+            penalty.is_finite() && (0.0..=MAX_BASE_IMPACT_PENALTY).contains(&penalty),
             "base_impact_penalty",
             penalty,
-            "a weight in [0, 10] per N·s (0: no penalty, the study's reward)",
+            "a weight in [0, 50] per N·s (0: no penalty, the study's reward)",
         )?;
         let threshold = self.base_impact_threshold;
         check(

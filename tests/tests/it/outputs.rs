@@ -282,7 +282,7 @@ fn the_transfer_recipe_trains_the_transfer_preset_from_the_warm_ups_weights() {
     let bin_dir = binary("learner").parent().unwrap().to_path_buf();
     let output = Command::new(repo_root().join("scripts/train-transfer"))
         .current_dir(repo_root())
-        .args(["recipe", "--", "--set", &listen])
+        .args(["recipe", "--", "--set", &listen, "--transfer-set", "env.position_reward_weight=4.0"])
         .env("CRAWLER_BIN_DIR", &bin_dir)
         .env("RUNS_DIR", runs.path())
         .envs([
@@ -311,6 +311,10 @@ fn the_transfer_recipe_trains_the_transfer_preset_from_the_warm_ups_weights() {
     assert!(log.contains("WARM_SECONDS"), "the warning does not name the knob to raise: {log}");
     assert!(!log.contains("the transfer stage stopped"), "the transfer stage met its budget: {log}");
     assert_eq!(transfer.meta.config["env"]["action_repeat"], 3, "the second stage is the transfer preset");
+    // `--transfer-set` reaches the transfer stage alone; `--set` both.
+    assert_eq!(transfer.meta.config["env"]["position_reward_weight"], 4.0);
+    assert_eq!(warm.meta.config["env"]["position_reward_weight"], 1.0, "the warm-up keeps the default preset's");
+    assert_eq!(warm.meta.config["learner"]["listen"], transfer.meta.config["learner"]["listen"]);
     assert_eq!(transfer.meta.progress.updates, 30, "the transfer stage stops at TRANSFER_UPDATES, not at its seconds");
     assert_eq!(transfer.meta.config["dqn"]["lr_decay"]["updates"], 1234);
     assert_eq!(transfer.meta.config["dqn"]["lr_decay"]["final_lr"], 2.5e-5);
@@ -359,6 +363,17 @@ fn the_transfer_recipe_trains_the_transfer_preset_from_the_warm_ups_weights() {
         .unwrap();
     assert_eq!(output.status.code(), Some(2));
     assert!(String::from_utf8_lossy(&output.stderr).contains("WARM_SECONDS"));
+    assert!(!runs.path().join("never-trained-warm").exists());
+    // So is a `--transfer-set` with nothing to set.
+    let output = Command::new(repo_root().join("scripts/train-transfer"))
+        .current_dir(repo_root())
+        .args(["never-trained", "--", "--transfer-set"])
+        .env("CRAWLER_BIN_DIR", &bin_dir)
+        .env("RUNS_DIR", runs.path())
+        .output()
+        .unwrap();
+    assert_eq!(output.status.code(), Some(2));
+    assert!(String::from_utf8_lossy(&output.stderr).contains("--transfer-set needs a KEY=VALUE"));
     assert!(!runs.path().join("never-trained-warm").exists());
 }
 
