@@ -10,9 +10,9 @@ use super::randomization::Randomization;
 pub const MAX_POSITION_REWARD_WEIGHT: f32 = 10.0;
 
 /// Largest `env.base_impact_penalty`, per N·s of base impulse over the threshold. The charge
-/// a physics step can take is capped on its own (at 5, in `crawler.rs`), so this bound is
-/// not what keeps returns inside the protocol's limits; it only refuses weights far beyond
-/// any measured (EXPERIMENTS.md: 5–17).
+/// a physics step can take is capped on its own (`MAX_BASE_IMPACT_CHARGE`, `crawler.rs`), so
+/// this bound is not what keeps returns inside the protocol's limits; it only refuses weights
+/// far beyond any measured (EXPERIMENTS.md: 5–17).
 pub const MAX_BASE_IMPACT_PENALTY: f32 = 50.0;
 
 /// Which way along x the crawler is rewarded for moving.

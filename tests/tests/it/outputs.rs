@@ -352,29 +352,24 @@ fn the_transfer_recipe_trains_the_transfer_preset_from_the_warm_ups_weights() {
     assert!(log.contains("no weight average of the newest checkpoints") && log.contains(&later), "{log}");
     assert!(!runs.path().join("recipe/checkpoints/average").exists());
 
-    // A misspelt knob is refused before anything trains, naming it.
-    let output = Command::new(repo_root().join("scripts/train-transfer"))
-        .current_dir(repo_root())
-        .arg("never-trained")
-        .env("CRAWLER_BIN_DIR", &bin_dir)
-        .env("RUNS_DIR", runs.path())
-        .env("WARM_SECONDS", "4m")
-        .output()
-        .unwrap();
-    assert_eq!(output.status.code(), Some(2));
-    assert!(String::from_utf8_lossy(&output.stderr).contains("WARM_SECONDS"));
-    assert!(!runs.path().join("never-trained-warm").exists());
-    // So is a `--transfer-set` with nothing to set.
-    let output = Command::new(repo_root().join("scripts/train-transfer"))
-        .current_dir(repo_root())
-        .args(["never-trained", "--", "--transfer-set"])
-        .env("CRAWLER_BIN_DIR", &bin_dir)
-        .env("RUNS_DIR", runs.path())
-        .output()
-        .unwrap();
-    assert_eq!(output.status.code(), Some(2));
-    assert!(String::from_utf8_lossy(&output.stderr).contains("--transfer-set needs a KEY=VALUE"));
-    assert!(!runs.path().join("never-trained-warm").exists());
+    // Bad arguments are refused (exit 2) before anything trains, naming what is wrong: a
+    // misspelt knob, and a `--transfer-set` with nothing to set.
+    let refusal = |args: &[&str], envs: &[(&str, &str)]| {
+        let output = Command::new(repo_root().join("scripts/train-transfer"))
+            .current_dir(repo_root())
+            .args(args)
+            .env("CRAWLER_BIN_DIR", &bin_dir)
+            .env("RUNS_DIR", runs.path())
+            .envs(envs.iter().copied())
+            .output()
+            .unwrap();
+        assert_eq!(output.status.code(), Some(2), "{args:?} {envs:?}");
+        assert!(!runs.path().join("never-trained-warm").exists(), "{args:?} {envs:?} trained");
+        String::from_utf8_lossy(&output.stderr).into_owned()
+    };
+    assert!(refusal(&["never-trained"], &[("WARM_SECONDS", "4m")]).contains("WARM_SECONDS"));
+    let message = refusal(&["never-trained", "--", "--transfer-set"], &[]);
+    assert!(message.contains("--transfer-set needs a KEY=VALUE"), "{message}");
 }
 
 /// `scripts/mujoco-check` with `args`, `stdin` piped in; its stdout.
