@@ -273,8 +273,8 @@ fn init_from_copies_another_runs_networks_and_refuses_a_different_one() {
 /// by how much to raise them), the transfer stage trains the transfer preset from the
 /// warm-up's newest weights with the learning-rate anneal until its own update budget
 /// (TRANSFER_UPDATES, before its seconds: no warning), both runs leave checkpoints, and
-/// `pick` plays every candidate left (PICK_EPISODES perturbed episodes each) and names the
-/// one to ship. (The weight average at its end is tested with the best checkpoint's test.)
+/// `pick` plays every candidate left (PICK_EPISODES nominal and as many perturbed episodes
+/// each) and names the one to ship. (The weight average at its end is tested with the best checkpoint's test.)
 #[test]
 fn the_transfer_recipe_trains_the_transfer_preset_from_the_warm_ups_weights() {
     let runs = tempfile::tempdir().unwrap();
@@ -336,7 +336,12 @@ fn the_transfer_recipe_trains_the_transfer_preset_from_the_warm_ups_weights() {
         let evaluation = candidate.evaluation.as_ref().unwrap_or_else(|why| panic!("{why}"));
         assert_eq!((evaluation.episodes, evaluation.perturbed), (2, true), "{candidate}");
         assert!(evaluation.failed_episodes <= 2);
+        let nominal = candidate.nominal.as_ref().unwrap_or_else(|| panic!("no nominal episodes: {candidate}"));
+        assert_eq!((nominal.episodes, nominal.perturbed), (2, false), "{candidate}");
     }
+    // The pick fails nominally in no more episodes than any other candidate.
+    let fewest = selection.candidates.iter().filter_map(|c| c.nominal.as_ref()).map(|n| n.failed_episodes).min();
+    assert_eq!(selection.chosen_nominal().map(|n| n.failed_episodes), fewest, "{selection:?}");
     let ship = selection.chosen().path.display().to_string();
     assert!(log.contains(&format!("the checkpoint to ship: {ship}")), "{log}");
     // Thirty updates rarely crawl, so the pick is usually a risk: `pick` says so with its
