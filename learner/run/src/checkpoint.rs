@@ -393,7 +393,19 @@ pub fn load(path: &Path) -> Result<Checkpoint, CheckpointError> {
     }
     let mut reloads = 0;
     loop {
-        let newest = latest(path)?;
+        let newest = match latest(path) {
+            Ok(newest) => newest,
+            // A live learner that keeps one checkpoint can empty the listing for an instant:
+            // the directory was read while only the old checkpoint was in it, and that one was
+            // pruned before its `meta.json` was looked at. A `step-*` name of any kind (one
+            // being written or removed) says a learner is at work there, so list again.
+            Err(CheckpointError::NotFound(_)) if reloads < RELOADS_AFTER_PRUNING && holds_checkpoint_names(path) => {
+                tracing::debug!(dir = %path.display(), "no complete checkpoint listed while one is written or pruned; listing again");
+                reloads += 1;
+                continue;
+            }
+            Err(error) => return Err(error),
+        };
         let meta_before = fs::read(newest.join(META)).ok();
         match load_one(newest.clone()) {
             Err(error) if reloads < RELOADS_AFTER_PRUNING => {
@@ -407,6 +419,13 @@ pub fn load(path: &Path) -> Result<Checkpoint, CheckpointError> {
             result => return result,
         }
     }
+}
+
+/// Whether `dir` holds any `step-*` entry: a checkpoint, or one being written or removed.
+fn holds_checkpoint_names(dir: &Path) -> bool {
+    fs::read_dir(dir).is_ok_and(|entries| {
+        entries.filter_map(Result::ok).any(|entry| entry.file_name().to_string_lossy().starts_with(PREFIX))
+    })
 }
 
 /// Loads the checkpoint in the `step-*` directory `path`.
