@@ -30,6 +30,7 @@ use std::sync::atomic::{AtomicUsize, Ordering};
 use serde::{Deserialize, Serialize};
 
 use crate::best::{Evaluation, EvaluationPlan, evaluate_checkpoint};
+use crate::checkpoint::resolve;
 use crate::evaluate::EvaluateError;
 
 /// Above this share of failed perturbed episodes the pick is reported as a risk. Of sixteen
@@ -152,9 +153,11 @@ pub fn safer(a: &Measured, b: &Measured) -> bool {
 pub fn pick(paths: &[PathBuf], episodes: u32, seconds: f32) -> Result<Selection, PickError> {
     let workers = std::thread::available_parallelism().map_or(1, NonZeroUsize::get);
     choose(paths, workers, |path| {
+        // Both physics play one checkpoint: a directory of them is resolved to its newest once.
+        let checkpoint = resolve(path)?;
         Ok(Measured {
-            nominal: evaluate_checkpoint(path, EvaluationPlan { episodes, seconds, perturbed: false })?,
-            perturbed: evaluate_checkpoint(path, EvaluationPlan { episodes, seconds, perturbed: true })?,
+            nominal: evaluate_checkpoint(&checkpoint, EvaluationPlan { episodes, seconds, perturbed: false })?,
+            perturbed: evaluate_checkpoint(&checkpoint, EvaluationPlan { episodes, seconds, perturbed: true })?,
         })
     })
 }
