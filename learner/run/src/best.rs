@@ -22,7 +22,7 @@ use tracing::{info, warn};
 use crawler_actor::env::Randomization;
 
 use crate::evaluate::{
-    EVAL_SEED, EvaluateError, STUCK_SPEED, episode_failed, evaluation_env, greedy_episode, load_policy,
+    EVAL_SEED, EvaluateError, LoadedPolicy, STUCK_SPEED, episode_failed, evaluation_env, greedy_episode, load_policy,
 };
 
 /// The directory under `checkpoints/` that holds the best checkpoint.
@@ -119,8 +119,13 @@ impl EvaluationPlan {
 
 /// Greedy episodes of the checkpoint at `path` with `eval`'s seeds, as `plan` says.
 pub fn evaluate_checkpoint(path: &Path, plan: EvaluationPlan) -> Result<Evaluation, EvaluateError> {
+    evaluate_policy(&load_policy(path, &[])?, plan)
+}
+
+/// Greedy episodes of a loaded checkpoint with `eval`'s seeds, as `plan` says: for several
+/// plans played on one checkpoint, read once.
+pub fn evaluate_policy(loaded: &LoadedPolicy, plan: EvaluationPlan) -> Result<Evaluation, EvaluateError> {
     let EvaluationPlan { episodes, seconds, perturbed } = plan;
-    let loaded = load_policy(path, &[])?;
     let mut env = evaluation_env(&loaded.config.env, seconds)?;
     let perturbations = plan.perturbations();
     if let Some(perturbations) = &perturbations {

@@ -347,13 +347,6 @@ pub fn latest(dir: &Path) -> Result<PathBuf, CheckpointError> {
     list(dir)?.pop().ok_or_else(|| CheckpointError::NotFound(dir.to_path_buf()))
 }
 
-/// The `step-*` directory [`load`] would read now: `path` itself when it holds a checkpoint,
-/// else the newest complete one under it. For two reads that must see the same checkpoint
-/// while a learner may still be saving beside them.
-pub fn resolve(path: &Path) -> Result<PathBuf, CheckpointError> {
-    if path.join(META).is_file() { Ok(path.to_path_buf()) } else { latest(path) }
-}
-
 /// Removes the checkpoint `path` so that a reader sees it whole or not at all: it is renamed
 /// out of the listing in one step (a name [`list`] skips), then deleted. Deleting in place
 /// would let a reader find `meta.json` while the files it names are already gone.

@@ -29,9 +29,8 @@ use std::sync::atomic::{AtomicUsize, Ordering};
 
 use serde::{Deserialize, Serialize};
 
-use crate::best::{Evaluation, EvaluationPlan, evaluate_checkpoint};
-use crate::checkpoint::resolve;
-use crate::evaluate::EvaluateError;
+use crate::best::{Evaluation, EvaluationPlan, evaluate_policy};
+use crate::evaluate::{EvaluateError, load_policy};
 
 /// Above this share of failed perturbed episodes the pick is reported as a risk. Of sixteen
 /// end-of-run candidates played on the study's model (EXPERIMENTS.md, sessions 25-29), the
@@ -153,11 +152,12 @@ pub fn safer(a: &Measured, b: &Measured) -> bool {
 pub fn pick(paths: &[PathBuf], episodes: u32, seconds: f32) -> Result<Selection, PickError> {
     let workers = std::thread::available_parallelism().map_or(1, NonZeroUsize::get);
     choose(paths, workers, |path| {
-        // Both physics play one checkpoint: a directory of them is resolved to its newest once.
-        let checkpoint = resolve(path)?;
+        // Read once, so both physics play one checkpoint even where a directory of them
+        // gains a newer one in between.
+        let loaded = load_policy(path, &[])?;
         Ok(Measured {
-            nominal: evaluate_checkpoint(&checkpoint, EvaluationPlan { episodes, seconds, perturbed: false })?,
-            perturbed: evaluate_checkpoint(&checkpoint, EvaluationPlan { episodes, seconds, perturbed: true })?,
+            nominal: evaluate_policy(&loaded, EvaluationPlan { episodes, seconds, perturbed: false })?,
+            perturbed: evaluate_policy(&loaded, EvaluationPlan { episodes, seconds, perturbed: true })?,
         })
     })
 }
