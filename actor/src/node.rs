@@ -19,7 +19,7 @@ use tokio::sync::{mpsc, watch};
 use tracing::{debug, info, warn};
 use zenoh::qos::CongestionControl;
 
-use crate::env::{EpisodeSummary, OBS_DIM, VecEnv};
+use crate::env::{EpisodeSummary, VecEnv};
 use crate::policy::{MlpPolicy, NetworkSpec, PolicyError};
 use crate::settings::ActorSettings;
 
@@ -139,7 +139,7 @@ pub async fn run(mut options: ActorOptions, stop: Arc<AtomicBool>) -> Result<(),
     options.id = Some(id);
     info!(run = %run_id, id, envs = settings.envs_per_actor, evaluator = options.evaluator, "joined run");
 
-    let (weights, policy_rx) = WeightsFeed::new(&run_id, settings.env.num_actions());
+    let (weights, policy_rx) = WeightsFeed::new(&run_id, settings.env.policy_input_dim(), settings.env.num_actions());
     let _subscriptions = subscribe(&session, &run_id, &weights, &stop, id, options.evaluator).await?;
     weights.wait_for_first(&session, &policy_rx, &stop).await;
     let publishers = Publishers::declare(&session, &run_id, id).await?;
@@ -182,14 +182,18 @@ async fn connect(options: &ActorOptions, stop: &AtomicBool) -> Result<Option<zen
 #[derive(Debug, Clone)]
 struct WeightsFeed {
     run_id: String,
-    /// The shape this env needs (obs and action counts; hidden layers come with the weights).
+    /// The shape this env needs (input and action counts; hidden layers come with the weights).
     expected: NetworkSpec,
     policy_tx: Arc<watch::Sender<Option<Arc<PublishedPolicy>>>>,
 }
 
 impl WeightsFeed {
-    fn new(run_id: &str, num_actions: usize) -> (Self, watch::Receiver<Option<Arc<PublishedPolicy>>>) {
-        let expected = NetworkSpec { obs_dim: OBS_DIM, hidden: vec![], num_actions, layer_norm: true };
+    fn new(
+        run_id: &str,
+        input_dim: usize,
+        num_actions: usize,
+    ) -> (Self, watch::Receiver<Option<Arc<PublishedPolicy>>>) {
+        let expected = NetworkSpec { obs_dim: input_dim, hidden: vec![], num_actions, layer_norm: true };
         let (policy_tx, policy_rx) = watch::channel::<Option<Arc<PublishedPolicy>>>(None);
         (Self { run_id: run_id.to_string(), expected, policy_tx: Arc::new(policy_tx) }, policy_rx)
     }
@@ -475,10 +479,11 @@ fn simulate(
     let incarnation = started ^ (u64::from(std::process::id()) << 40);
     let num_actions = settings.env.num_actions() as u32;
     let repeat = u64::from(settings.env.action_repeat);
-    let mut batch = new_batch(run_id, id, incarnation);
+    let input_dim = env.input_dim();
+    let mut batch = new_batch(run_id, id, incarnation, input_dim);
     let mut greedy = Vec::with_capacity(k);
     let mut actions = vec![0u32; k];
-    let mut observations = vec![0.0f32; k * OBS_DIM];
+    let mut observations = vec![0.0f32; k * input_dim];
     let mut steps_per_env = 0u64;
     while !stop.load(Ordering::SeqCst) && options.max_steps.is_none_or(|max| steps_per_env < max) {
         if policy_rx.has_changed().unwrap_or(false)
@@ -511,7 +516,7 @@ fn simulate(
             if batch.len() >= settings.batch_transitions {
                 batch.weights_version = policy.version;
                 batch.count = batch.len() as u32;
-                let full = std::mem::replace(&mut batch, new_batch(run_id, id, incarnation));
+                let full = std::mem::replace(&mut batch, new_batch(run_id, id, incarnation, input_dim));
                 batch.sequence = full.sequence + 1;
                 if out.blocking_send(Outgoing::Batch(full)).is_err() {
                     return;
@@ -537,10 +542,11 @@ fn simulate(
 /// Appends the step just taken by every crawler of `env` to `batch`.
 fn append_transitions(batch: &mut proto::TransitionBatch, env: &VecEnv, observations: &[f32], actions: &[u32]) {
     let next = env.next_observations();
+    let dim = env.input_dim();
     for i in 0..env.len() {
         batch.env_ids.push(i as u32);
-        batch.observations.extend_from_slice(&observations[i * OBS_DIM..(i + 1) * OBS_DIM]);
-        batch.next_observations.extend_from_slice(&next[i * OBS_DIM..(i + 1) * OBS_DIM]);
+        batch.observations.extend_from_slice(&observations[i * dim..(i + 1) * dim]);
+        batch.next_observations.extend_from_slice(&next[i * dim..(i + 1) * dim]);
         batch.actions.push(actions[i]);
         batch.rewards.push(env.rewards()[i]);
         batch.terminated.push(env.terminated()[i]);
@@ -581,13 +587,13 @@ impl EpisodeStatsSource<'_> {
     }
 }
 
-fn new_batch(run_id: &str, actor: u32, incarnation: u64) -> proto::TransitionBatch {
+fn new_batch(run_id: &str, actor: u32, incarnation: u64, input_dim: usize) -> proto::TransitionBatch {
     proto::TransitionBatch {
         protocol_version: PROTOCOL_VERSION,
         run_id: run_id.to_string(),
         actor_id: actor,
         incarnation,
-        obs_dim: OBS_DIM as u32,
+        obs_dim: input_dim as u32,
         ..Default::default()
     }
 }

@@ -157,6 +157,7 @@ impl From<&EnvConfig> for proto::EnvSettings {
             base_impact_penalty: env.base_impact_penalty,
             base_impact_threshold: env.base_impact_threshold,
             position_reward_weight: env.position_reward_weight,
+            observation_history: env.observation_history,
             randomization: env.randomization.is_active().then(|| {
                 let r = &env.randomization;
                 proto::RandomizationSettings {
@@ -234,6 +235,7 @@ impl TryFrom<&proto::EnvSettings> for EnvConfig {
             base_impact_penalty: env.base_impact_penalty,
             base_impact_threshold: env.base_impact_threshold,
             position_reward_weight: env.position_reward_weight,
+            observation_history: env.observation_history,
             randomization: env.randomization.as_ref().map(Randomization::try_from).transpose()?.unwrap_or_default(),
         };
         config.validate()?;
@@ -305,6 +307,7 @@ mod tests {
         settings.env.max_tilt_deg = 60.0;
         settings.env.tilt_rate_penalty = 0.02;
         settings.env.position_reward_weight = 3.0;
+        settings.env.observation_history = 4;
         settings.env.contact_prediction = 0.004;
         settings.env.joint_limit_timeconst = 0.03;
         settings.env.randomization.latency_steps = [0, 2];

@@ -448,7 +448,56 @@ fn bad_settings_are_rejected_by_name() {
         let bad = EnvConfig { contact_prediction: distance, ..EnvConfig::default() };
         assert!(bad.validate().unwrap_err().to_string().contains("env.contact_prediction"), "{distance}");
     }
+    for history in [0, 9] {
+        let bad = EnvConfig { observation_history: history, ..EnvConfig::default() };
+        assert!(bad.validate().unwrap_err().to_string().contains("env.observation_history"), "{history}");
+    }
     assert!(EnvConfig::default().validate().is_ok());
+}
+
+/// With `observation_history` h, each crawler's input is its last h observations, newest
+/// first: checked against the same crawlers (same seeds, same actions) seen one observation
+/// at a time, across an episode's end, where the history starts again from the new
+/// episode's first observation and never mixes in the old one's.
+#[test]
+fn an_observation_history_holds_the_last_decisions_newest_first_and_restarts_each_episode() {
+    const HISTORY: usize = 3;
+    let single = EnvConfig { min_episode_steps: 10, max_episode_steps: 10, action_repeat: 2, ..EnvConfig::default() };
+    let stacked = EnvConfig { observation_history: HISTORY as u32, ..single.clone() };
+    assert_eq!(stacked.policy_input_dim(), HISTORY * OBS_DIM);
+    let seeds = [3, 4];
+    let (mut one, mut many) = (VecEnv::new(&single, &seeds), VecEnv::new(&stacked, &seeds));
+    assert_eq!(many.input_dim(), HISTORY * OBS_DIM);
+    // Per crawler, the observations of its current episode so far, oldest first.
+    let mut episode: Vec<Vec<Vec<f32>>> =
+        (0..seeds.len()).map(|i| vec![one.observations()[i * OBS_DIM..][..OBS_DIM].to_vec()]).collect();
+    let expected_input = |frames: &[Vec<f32>]| -> Vec<f32> {
+        (0..HISTORY).flat_map(|j| frames[frames.len().saturating_sub(1 + j)].clone()).collect()
+    };
+    let mut ended = 0;
+    for step in 0..12u32 {
+        for (i, frames) in episode.iter().enumerate() {
+            assert_eq!(
+                &many.observations()[i * HISTORY * OBS_DIM..][..HISTORY * OBS_DIM],
+                expected_input(frames),
+                "crawler {i}, decision {step}"
+            );
+        }
+        let actions = [step % 25, (7 * step) % 25];
+        let finished_one: Vec<usize> = one.step(&actions).iter().map(|(i, _)| *i).collect();
+        let finished_many: Vec<usize> = many.step(&actions).iter().map(|(i, _)| *i).collect();
+        assert_eq!(finished_one, finished_many);
+        for (i, frames) in episode.iter_mut().enumerate() {
+            frames.push(one.next_observations()[i * OBS_DIM..][..OBS_DIM].to_vec());
+            // The transition's next input: the final observation, then the ones before it.
+            assert_eq!(&many.next_observations()[i * HISTORY * OBS_DIM..][..HISTORY * OBS_DIM], expected_input(frames));
+            if finished_one.contains(&i) {
+                ended += 1;
+                *frames = vec![one.observations()[i * OBS_DIM..][..OBS_DIM].to_vec()];
+            }
+        }
+    }
+    assert_eq!(ended, 4, "both crawlers' 5-decision episodes ended twice in 12 decisions");
 }
 
 #[test]

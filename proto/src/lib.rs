@@ -37,7 +37,10 @@ pub use validate::{ProtoError, SequenceTracker, TransitionLimits};
 ///    an older actor would train on the study's weight whatever the learner's config says.
 /// 10: the physics randomisation carries the floor contacts' stiffness
 ///    (`RandomizationSettings.floor_contact_hz`); an older actor would simulate other physics.
-pub const PROTOCOL_VERSION: u32 = 10;
+/// 11: the env settings carry how many decisions' observations the policy sees
+///    (`EnvSettings.observation_history`); an older actor would send 40-value observations to
+///    a learner whose network takes more.
+pub const PROTOCOL_VERSION: u32 = 11;
 
 /// Largest encoded message a node accepts, in bytes. The largest legal messages: a batch of
 /// [`MAX_BATCH_TRANSITIONS`] transitions of 40 values (about 1.4 MB) and the weights of a

@@ -176,6 +176,9 @@ pub struct EnvSettings {
     /// Weight of the position reward; 1: the study's reward.
     #[prost(float, tag = "20")]
     pub position_reward_weight: f32,
+    /// Observations the policy sees per decision, newest first; 1: the study's 40 values.
+    #[prost(uint32, tag = "21")]
+    pub observation_history: u32,
 }
 
 /// Ranges drawn once per episode (`crawler_actor::env::Randomization` documents each); every

@@ -182,6 +182,24 @@ class Mlp:
         return self.output[0] @ x + self.output[1]
 
 
+class PolicyInput:
+    """The policy's input of actor/src/env/observation.rs (`stack_first`, `stack_next`): the
+    last `history` 40-value observations of the decisions so far, newest first, the first one
+    repeated where the episode is younger than the history."""
+
+    def __init__(self, env: dict) -> None:
+        self.history = int(env.get("observation_history", 1))
+        self.values = np.zeros(0)
+
+    def first(self, frame: np.ndarray) -> np.ndarray:
+        self.values = np.tile(frame, self.history)
+        return self.values
+
+    def next(self, frame: np.ndarray) -> np.ndarray:
+        self.values = np.concatenate([frame, self.values[: len(self.values) - len(frame)]])
+        return self.values
+
+
 def newest_checkpoint(path: Path) -> Path:
     if (path / "meta.json").exists():
         return path
@@ -237,9 +255,11 @@ def evaluate(args) -> None:
         q2 = rng.uniform(*start2) * DEG
         crawler.reset(q1, q2)
         torques = np.zeros(2)
+        inputs = PolicyInput(env)
         step = 0
         while step < steps:
-            action = int(np.argmax(policy(crawler.observe(torques))))
+            frame = crawler.observe(torques)
+            action = int(np.argmax(policy(inputs.first(frame) if step == 0 else inputs.next(frame))))
             torques = torques_of(action)
             for _ in range(min(repeat, steps - step)):
                 crawler.step(torques)
@@ -414,6 +434,7 @@ def replay(args) -> None:
         env = meta["config"].get("env", {})
         torques_of = action_torques(env)
         repeat = int(env.get("action_repeat", 1))
+        inputs = PolicyInput(env)
         gait = {"checkpoint": args.checkpoint, "action_repeat": repeat}
     qpos, qvel, torques, phases, base_forces = [], [], [], [], []
     crawler.reset(args.start[0] * DEG, args.start[1] * DEG)
@@ -427,7 +448,8 @@ def replay(args) -> None:
         if not args.checkpoint:
             torque = square_wave(gait, s * crawler.dt)
         elif s % repeat == 0:
-            action = int(np.argmax(policy(crawler.observe(torque))))
+            frame = crawler.observe(torque)
+            action = int(np.argmax(policy(inputs.first(frame) if s == 0 else inputs.next(frame))))
             torque = torques_of(action)
         torques.append(torque)
         crawler.step(torque)

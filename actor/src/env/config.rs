@@ -2,6 +2,7 @@
 
 use serde::{Deserialize, Serialize};
 
+use super::observation::{MAX_OBSERVATION_HISTORY, OBS_DIM};
 use super::randomization::Randomization;
 
 /// Largest `env.position_reward_weight`: ten times the study's. It keeps a physics step's
@@ -108,6 +109,12 @@ pub struct EnvConfig {
     /// The base's contact force, in N, that [`Self::base_impact_penalty`] lets through
     /// without a charge: resting on the floor carries the crawler's weight, about 9 N.
     pub base_impact_threshold: f32,
+    /// How many decisions' observations the policy sees at once, newest first (1: the study's
+    /// 40 values). With h > 1 each decision's input is the current observation followed by
+    /// the h − 1 before it (`observation::stack_next`), as RMA-style adaptation does: from how
+    /// the state moved under the last torques a policy can tell a soft floor or a weak motor
+    /// from the nominal ones, and act for the physics it is in rather than for all of them.
+    pub observation_history: u32,
     /// Per-episode physics randomisation (off by default).
     pub randomization: Randomization,
 }
@@ -134,6 +141,7 @@ impl Default for EnvConfig {
             tilt_rate_penalty: 0.0,
             base_impact_penalty: 0.0,
             base_impact_threshold: 50.0,
+            observation_history: 1,
             randomization: Randomization::default(),
         }
     }
@@ -152,6 +160,12 @@ impl EnvConfig {
     /// Number of discrete actions, n².
     pub fn num_actions(&self) -> usize {
         (self.action_levels as usize).pow(2)
+    }
+
+    /// Values in the policy's input per decision: the 40-value observation times
+    /// [`Self::observation_history`].
+    pub fn policy_input_dim(&self) -> usize {
+        OBS_DIM * self.observation_history as usize
     }
 
     /// Checks every field against its allowed range.
@@ -231,6 +245,13 @@ impl EnvConfig {
             "base_impact_threshold",
             threshold,
             "a force in [0, 10000] N",
+        )?;
+        let history = self.observation_history;
+        check(
+            (1..=MAX_OBSERVATION_HISTORY).contains(&history),
+            "observation_history",
+            history,
+            "an integer in 1..=8 (1: the study's 40-value observation)",
         )?;
         self.randomization.validate()?;
         for (key, range) in [("start_joint1_deg", self.start_joint1_deg), ("start_joint2_deg", self.start_joint2_deg)] {

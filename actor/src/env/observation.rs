@@ -21,6 +21,10 @@
 //! Touch forces come from the contact solve of the last physics step, which MuJoCo too
 //! computes before integrating. The knee's 2 mm site lies on the capsule's axis, 1 cm inside
 //! its surface, so no contact ever reaches it; the value is kept for the layout's sake.
+//!
+//! A policy may see more than the current observation: with `env.observation_history` h its
+//! input is h of these layouts, the current one first, then the one of each decision before
+//! ([`stack_first`], [`stack_next`]).
 
 use std::ops::Range;
 
@@ -42,6 +46,37 @@ pub const TIP_TOUCH: Range<usize> = 21..29;
 pub const KNEE_TOUCH: usize = 29;
 pub const BASE_TOUCH: Range<usize> = 30..38;
 pub const PREV_ACTION: Range<usize> = 38..40;
+
+/// Most observations a policy may see at once (`EnvConfig::observation_history`): 320 values.
+pub const MAX_OBSERVATION_HISTORY: u32 = 8;
+
+/// The policy's input at an episode's first decision: `frame`, the current observation, in
+/// every slot of `out` (`h` × 40 values), since nothing came before it. Repeating the frame
+/// rather than zero-filling keeps the input on states the crawler can be in: a crawler at rest
+/// looks the same in every slot.
+///
+/// # Panics
+/// If `out` is not a whole number of observations: a caller bug.
+pub fn stack_first(frame: &[f32; OBS_DIM], out: &mut [f32]) {
+    assert!(out.len().is_multiple_of(OBS_DIM), "the input holds whole observations");
+    for slot in out.chunks_exact_mut(OBS_DIM) {
+        slot.copy_from_slice(frame);
+    }
+}
+
+/// The policy's input after a decision: `frame`, the new observation, then the newest h − 1
+/// observations of `previous` (the input of the decision before), so slot j holds the
+/// observation of j decisions ago. `previous` and `out` have the same length, h × 40.
+///
+/// # Panics
+/// If the lengths differ or are not whole observations: a caller bug.
+pub fn stack_next(previous: &[f32], frame: &[f32; OBS_DIM], out: &mut [f32]) {
+    assert_eq!(previous.len(), out.len(), "inputs of one history length");
+    assert!(out.len().is_multiple_of(OBS_DIM), "the input holds whole observations");
+    let (newest, older) = out.split_at_mut(OBS_DIM);
+    newest.copy_from_slice(frame);
+    older.copy_from_slice(&previous[..previous.len() - OBS_DIM]);
+}
 
 /// The physical range of each observation value, with a wide margin: what validation of a
 /// received transition accepts (`crawler_proto::TransitionLimits`). Far beyond what a

@@ -2,17 +2,20 @@
 
 use super::config::EnvConfig;
 use super::crawler::{Crawler, EpisodeSummary, Reward};
-use super::observation::OBS_DIM;
+use super::observation::{OBS_DIM, stack_first, stack_next};
 
 /// K independent crawlers, each seeded on its own, with auto-reset.
 ///
 /// After [`VecEnv::step`], `next_observations()` holds each crawler's observation after the
 /// step: for a crawler whose episode just ended, that is the final observation, which belongs
 /// in the transition. `observations()` holds what to act on next: the same values, or the first
-/// observation of the new episode where one ended.
+/// observation of the new episode where one ended. Each crawler's values are the policy's
+/// input, `EnvConfig::policy_input_dim`: its last `observation_history` observations, newest
+/// first.
 #[derive(Debug)]
 pub struct VecEnv {
     crawlers: Vec<Crawler>,
+    input_dim: usize,
     observations: Vec<f32>,
     next_observations: Vec<f32>,
     rewards: Vec<f32>,
@@ -27,18 +30,20 @@ impl VecEnv {
     pub fn new(config: &EnvConfig, seeds: &[u64]) -> Self {
         let crawlers: Vec<Crawler> = seeds.iter().map(|&seed| Crawler::new(config.clone(), seed)).collect();
         let k = crawlers.len();
+        let input_dim = config.policy_input_dim();
         let mut env = Self {
             crawlers,
-            observations: vec![0.0; k * OBS_DIM],
-            next_observations: vec![0.0; k * OBS_DIM],
+            input_dim,
+            observations: vec![0.0; k * input_dim],
+            next_observations: vec![0.0; k * input_dim],
             rewards: vec![0.0; k],
             reward_parts: vec![Reward::default(); k],
             terminated: vec![false; k],
             truncated: vec![false; k],
             finished: Vec::with_capacity(k),
         };
-        for (crawler, out) in env.crawlers.iter().zip(env.observations.chunks_exact_mut(OBS_DIM)) {
-            observe_into(crawler, out);
+        for (crawler, out) in env.crawlers.iter().zip(env.observations.chunks_exact_mut(input_dim)) {
+            stack_first(&observe(crawler), out);
         }
         env.next_observations.copy_from_slice(&env.observations);
         env
@@ -63,12 +68,12 @@ impl VecEnv {
         let buffers = self
             .crawlers
             .iter_mut()
-            .zip(self.observations.chunks_exact_mut(OBS_DIM))
-            .zip(self.next_observations.chunks_exact_mut(OBS_DIM))
+            .zip(self.observations.chunks_exact_mut(self.input_dim))
+            .zip(self.next_observations.chunks_exact_mut(self.input_dim))
             .enumerate();
         for (i, ((crawler, obs), next_obs)) in buffers {
             let outcome = crawler.step(actions[i]);
-            observe_into(crawler, next_obs);
+            stack_next(obs, &observe(crawler), next_obs);
             self.rewards[i] = outcome.reward.total();
             self.reward_parts[i] = outcome.reward;
             self.terminated[i] = outcome.terminated;
@@ -76,7 +81,7 @@ impl VecEnv {
             if outcome.done() {
                 self.finished.push((i, crawler.episode_summary(Some(outcome))));
                 crawler.reset();
-                observe_into(crawler, obs);
+                stack_first(&observe(crawler), obs);
             } else {
                 obs.copy_from_slice(next_obs);
             }
@@ -84,12 +89,17 @@ impl VecEnv {
         &self.finished
     }
 
-    /// K × 40 observations to act on, crawler-major.
+    /// Values in one crawler's slice of [`Self::observations`]: `EnvConfig::policy_input_dim`.
+    pub fn input_dim(&self) -> usize {
+        self.input_dim
+    }
+
+    /// K policy inputs to act on, crawler-major.
     pub fn observations(&self) -> &[f32] {
         &self.observations
     }
 
-    /// K × 40 observations right after the last step (final ones where an episode ended).
+    /// K policy inputs right after the last step (final ones where an episode ended).
     pub fn next_observations(&self) -> &[f32] {
         &self.next_observations
     }
@@ -119,8 +129,8 @@ impl VecEnv {
     }
 }
 
-fn observe_into(crawler: &Crawler, out: &mut [f32]) {
-    let mut buf = [0.0; OBS_DIM];
-    crawler.observe(&mut buf);
-    out.copy_from_slice(&buf);
+fn observe(crawler: &Crawler) -> [f32; OBS_DIM] {
+    let mut frame = [0.0; OBS_DIM];
+    crawler.observe(&mut frame);
+    frame
 }

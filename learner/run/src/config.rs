@@ -2,7 +2,7 @@
 
 use std::path::Path;
 
-use crawler_actor::env::{EnvConfig, OBS_DIM};
+use crawler_actor::env::EnvConfig;
 use crawler_actor::policy::NetworkSpec;
 use crawler_actor::settings::{ActorSettings, Exploration};
 use serde::{Deserialize, Serialize};
@@ -354,7 +354,7 @@ impl TrainConfig {
     pub fn check_memory(&self, total: Option<u64>) -> Result<(), ConfigError> {
         let Some(total) = total else { return Ok(()) };
         let mib = |bytes: u64| bytes >> 20;
-        let needed = self.replay.bytes_needed(OBS_DIM);
+        let needed = self.replay.bytes_needed(self.env.policy_input_dim());
         if needed.is_none_or(|n| n > total) {
             return Err(ConfigError::TooLarge {
                 what: "the replay buffer",
@@ -519,7 +519,7 @@ impl TrainConfig {
 
     pub fn network_spec(&self) -> NetworkSpec {
         NetworkSpec {
-            obs_dim: OBS_DIM,
+            obs_dim: self.env.policy_input_dim(),
             hidden: self.network.hidden.clone(),
             num_actions: self.env.num_actions(),
             layer_norm: self.network.layer_norm,

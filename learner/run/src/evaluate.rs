@@ -5,6 +5,7 @@
 
 use std::path::{Path, PathBuf};
 
+use crawler_actor::env::observation::{stack_first, stack_next};
 use crawler_actor::env::{Crawler, EnvConfig, EpisodeSummary, OBS_DIM, PoseFrame, Randomization};
 use crawler_actor::policy::{MlpPolicy, PolicyError};
 
@@ -37,6 +38,11 @@ pub enum EvaluateError {
     EpisodeLength { seconds: f32, dt: f32 },
     #[error("the policy chose no action")]
     NoAction,
+    #[error(
+        "the checkpoint's network takes {network} inputs, but its env (with the overrides) makes {env}: \
+         env.observation_history must stay the one it was trained with"
+    )]
+    InputMismatch { network: usize, env: usize },
 }
 
 /// A checkpoint ready to act: its config (with overrides applied) and its greedy policy.
@@ -57,6 +63,10 @@ pub fn load_policy(path: &Path, overrides: &[String]) -> Result<LoadedPolicy, Ev
     let weights =
         std::fs::read(&weights_path).map_err(|source| EvaluateError::Io { path: weights_path.clone(), source })?;
     let policy = MlpPolicy::from_safetensors(&weights, &loaded.meta.network)?;
+    let (network, env) = (loaded.meta.network.obs_dim, config.env.policy_input_dim());
+    if network != env {
+        return Err(EvaluateError::InputMismatch { network, env });
+    }
     Ok(LoadedPolicy { path: loaded.path, meta: loaded.meta, config, policy })
 }
 
@@ -88,16 +98,23 @@ pub fn greedy_episode(
 ) -> Result<(EpisodeSummary, Vec<PoseFrame>), EvaluateError> {
     let mut crawler = Crawler::new(env.clone(), seed);
     crawler.set_recording(record);
-    let mut observation = [0.0f32; OBS_DIM];
+    let mut frame = [0.0f32; OBS_DIM];
+    // The policy's input: the last `observation_history` observations, newest first.
+    let mut input = vec![0.0f32; env.policy_input_dim()];
+    let mut previous = input.clone();
     let mut actions = Vec::with_capacity(1);
+    crawler.observe(&mut frame);
+    stack_first(&frame, &mut input);
     loop {
-        crawler.observe(&mut observation);
-        policy.greedy_actions(&observation, &mut actions)?;
+        policy.greedy_actions(&input, &mut actions)?;
         let action = *actions.first().ok_or(EvaluateError::NoAction)?;
         let outcome = crawler.step(action);
         if outcome.done() {
             let summary = crawler.episode_summary(Some(outcome));
             return Ok((summary, crawler.recorded_frames().to_vec()));
         }
+        std::mem::swap(&mut input, &mut previous);
+        crawler.observe(&mut frame);
+        stack_next(&previous, &frame, &mut input);
     }
 }

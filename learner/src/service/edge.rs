@@ -206,11 +206,13 @@ pub(super) async fn serve(
         .map_err(zenoh_error("declaring the weights queryable"))?;
     let limits = TransitionLimits {
         run_id: run_id.to_string(),
-        obs_dim: crawler_actor::env::OBS_DIM as u32,
+        obs_dim: config.env.policy_input_dim() as u32,
         num_actions: config.env.num_actions() as u32,
         max_batch: proto::MAX_BATCH_TRANSITIONS,
         envs_per_actor: config.actor.envs_per_actor as u32,
-        observation_range: observation::observation_range(config.env.max_torque),
+        // One observation's ranges for each slot of the history.
+        observation_range: observation::observation_range(config.env.max_torque)
+            .repeat(config.env.observation_history as usize),
         max_abs_reward: crawler_actor::env::Reward::max_abs_total(&config.env),
     };
     let transitions = session

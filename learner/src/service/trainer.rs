@@ -134,8 +134,8 @@ impl<'a> Trainer<'a> {
             std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).map_or(0, |d| d.as_millis() as u64);
         progress.learner_session = (progress.learner_session + 1).max(now_ms);
         let replay = match replay {
-            Some(r) if r.config() == config.replay => r,
-            _ => Replay::new(config.replay.clone(), crawler_actor::env::OBS_DIM)?,
+            Some(r) if r.config() == config.replay && r.obs_dim() == config.env.policy_input_dim() => r,
+            _ => Replay::new(config.replay.clone(), config.env.policy_input_dim())?,
         };
         let mut rate = RateLimiter::new(config.rate);
         rate.reset(replay.len());

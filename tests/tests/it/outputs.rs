@@ -227,6 +227,40 @@ fn eval_runs_a_checkpoint_in_the_studys_layout() {
     assert!(message.contains("floor_contact_hz"), "{message}");
 }
 
+/// `env.observation_history`: actors send stacked inputs (two observations, newest first),
+/// the learner takes them as valid and learns a network over them, and `eval` plays its
+/// checkpoint; an override that changes the history is refused by name rather than feeding
+/// the network inputs of another shape.
+#[test]
+fn a_run_with_an_observation_history_trains_and_evaluates_on_stacked_inputs() {
+    let runs = tempfile::tempdir().unwrap();
+    let mut learner =
+        Learner::builder(runs.path(), "history").actors(1).args(&["--set", "env.observation_history=2"]).start();
+    let status = learner.wait_for(Duration::from_secs(180), "an episode and some updates", |s| {
+        crawler_tests::u64_at(s, "/actors/0/episodes") >= 1 && crawler_tests::u64_at(s, "/updates") > 0
+    });
+    let rejected =
+        status["rejected"].as_object().map(|reasons| reasons.values().filter_map(|n| n.as_u64()).sum::<u64>());
+    assert_eq!(rejected, Some(0), "the learner refused stacked transitions: {status}");
+    let exit = learner.terminate(Duration::from_secs(60));
+    assert!(exit.success(), "{exit}");
+
+    let checkpoints = runs.path().join("history/checkpoints");
+    let loaded = checkpoint::load(&checkpoints).unwrap();
+    assert_eq!(loaded.meta.network.obs_dim, 80, "two 40-value observations");
+    let checkpoints = checkpoints.to_str().unwrap();
+    let report = run("eval", &[checkpoints, "--episodes", "1", "--seconds", "0.5"]);
+    let report: serde_json::Value = serde_json::from_slice(&report.stdout).unwrap();
+    assert_eq!(report["network"]["obs_dim"], 80);
+    assert_eq!(report["episodes"].as_array().map(Vec::len), Some(1), "{report}");
+
+    let output =
+        Command::new(binary("eval")).args([checkpoints, "--set", "env.observation_history=1"]).output().unwrap();
+    assert!(!output.status.success());
+    let message = String::from_utf8_lossy(&output.stderr);
+    assert!(message.contains("80 inputs") && message.contains("env.observation_history"), "{message}");
+}
+
 #[test]
 fn init_from_copies_another_runs_networks_and_refuses_a_different_one() {
     let runs = tempfile::tempdir().unwrap();
@@ -488,6 +522,27 @@ fn mujoco_cross_check_agrees_on_layout_and_policy_and_runs_an_episode() {
         assert!(summary[key].as_f64().is_some_and(f64::is_finite), "{key}: {report}");
     }
     assert!(summary["stuck_episodes"].as_u64().is_some_and(|n| n <= 1), "{report}");
+
+    // A checkpoint that sees its last three observations (`env.observation_history`): the
+    // cross-check stacks MuJoCo's observations as the env does, or the network's first layer
+    // would not take them.
+    let overrides = ["env.observation_history=3".to_string()];
+    let config = TrainConfig::load(&repo_root().join("configs/transfer.toml"), &overrides).unwrap();
+    let dqn = Dqn::new(config.network_spec(), config.dqn.clone());
+    let dir = tempfile::tempdir().unwrap();
+    checkpoint::save(
+        dir.path(),
+        &dqn,
+        "history",
+        &Progress::default(),
+        &serde_json::to_value(&config).unwrap(),
+        None,
+        1,
+    )
+    .unwrap();
+    let report = mujoco_check(&["eval", dir.path().to_str().unwrap(), "--episodes", "1", "--seconds", "0.1"], "");
+    let report: serde_json::Value = serde_json::from_str(&report).unwrap();
+    assert!(report["summary"]["mean_speed"].as_f64().is_some_and(f64::is_finite), "{report}");
 }
 
 /// The sim-to-sim state replay (issue 18): from states along MuJoCo's own trajectory of the
