@@ -191,11 +191,7 @@ fn the_best_checkpoint_by_greedy_evaluation_is_kept_and_eval_reproduces_it() {
 fn eval_runs_a_checkpoint_in_the_studys_layout() {
     // A checkpoint as the study's own policy would need: action repeat 1, 40 inputs,
     // 25 actions, hidden 512-256-128.
-    let config = TrainConfig::load(&repo_root().join("configs/study.toml"), &[]).unwrap();
-    let dqn = Dqn::new(config.network_spec(), config.dqn.clone());
-    let dir = tempfile::tempdir().unwrap();
-    let config_json = serde_json::to_value(&config).unwrap();
-    checkpoint::save(dir.path(), &dqn, "study", &Progress::default(), &config_json, None, 1).unwrap();
+    let (_, dir) = untrained_checkpoint("configs/study.toml", &[]);
 
     let eval = || {
         let output = run("eval", &[dir.path().to_str().unwrap(), "--episodes", "2", "--seconds", "0.5"]);
@@ -411,6 +407,17 @@ fn the_transfer_recipe_trains_the_transfer_preset_from_the_warm_ups_weights() {
     assert!(message.contains("--transfer-set needs a KEY=VALUE"), "{message}");
 }
 
+/// A checkpoint of freshly initialised networks for `preset` with `overrides`, in a temporary
+/// directory: what the cross-check needs to play a network of that shape.
+fn untrained_checkpoint(preset: &str, overrides: &[String]) -> (TrainConfig, tempfile::TempDir) {
+    let config = TrainConfig::load(&repo_root().join(preset), overrides).unwrap();
+    let dqn = Dqn::new(config.network_spec(), config.dqn.clone());
+    let dir = tempfile::tempdir().unwrap();
+    let config_json = serde_json::to_value(&config).unwrap();
+    checkpoint::save(dir.path(), &dqn, "untrained", &Progress::default(), &config_json, None, 1).unwrap();
+    (config, dir)
+}
+
 /// `scripts/mujoco-check` with `args`, `stdin` piped in; its stdout.
 fn mujoco_check(args: &[&str], stdin: &str) -> String {
     mujoco_check_with(args, stdin, &[])
@@ -479,19 +486,7 @@ fn mujoco_cross_check_agrees_on_layout_and_policy_and_runs_an_episode() {
     }
 
     // Policy: a checkpoint's greedy actions agree for varied observations.
-    let config = TrainConfig::load(&repo_root().join("configs/default.toml"), &[]).unwrap();
-    let dqn = Dqn::new(config.network_spec(), config.dqn.clone());
-    let dir = tempfile::tempdir().unwrap();
-    checkpoint::save(
-        dir.path(),
-        &dqn,
-        "mujoco",
-        &Progress::default(),
-        &serde_json::to_value(&config).unwrap(),
-        None,
-        1,
-    )
-    .unwrap();
+    let (config, dir) = untrained_checkpoint("configs/default.toml", &[]);
     let loaded = crawler_run::evaluate::load_policy(dir.path(), &[]).unwrap();
     let mut observations = Vec::new();
     let mut crawler = Crawler::new(config.env.clone(), 7);
@@ -526,20 +521,7 @@ fn mujoco_cross_check_agrees_on_layout_and_policy_and_runs_an_episode() {
     // A checkpoint that sees its last three observations (`env.observation_history`): the
     // cross-check stacks MuJoCo's observations as the env does, or the network's first layer
     // would not take them.
-    let overrides = ["env.observation_history=3".to_string()];
-    let config = TrainConfig::load(&repo_root().join("configs/transfer.toml"), &overrides).unwrap();
-    let dqn = Dqn::new(config.network_spec(), config.dqn.clone());
-    let dir = tempfile::tempdir().unwrap();
-    checkpoint::save(
-        dir.path(),
-        &dqn,
-        "history",
-        &Progress::default(),
-        &serde_json::to_value(&config).unwrap(),
-        None,
-        1,
-    )
-    .unwrap();
+    let (_, dir) = untrained_checkpoint("configs/transfer.toml", &["env.observation_history=3".to_string()]);
     let report = mujoco_check(&["eval", dir.path().to_str().unwrap(), "--episodes", "1", "--seconds", "0.1"], "");
     let report: serde_json::Value = serde_json::from_str(&report).unwrap();
     assert!(report["summary"]["mean_speed"].as_f64().is_some_and(f64::is_finite), "{report}");
