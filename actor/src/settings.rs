@@ -19,6 +19,12 @@ pub enum SettingsError {
     Env(#[from] crate::env::EnvConfigError),
     #[error("exploration {exploration:?} is invalid: {allowed}")]
     Exploration { exploration: Exploration, allowed: &'static str },
+    #[error(
+        "actor.batch_transitions = {transitions} with env.observation_history = {history} makes \
+         messages of up to {bytes} bytes, over the protocol's limit of {max}: the learner would \
+         refuse every batch. Set actor.batch_transitions to at most {fits}"
+    )]
+    BatchTooLarge { transitions: usize, history: u32, bytes: usize, max: usize, fits: usize },
 }
 
 /// How actors explore.
@@ -112,6 +118,21 @@ impl ActorSettings {
         }
         if !(self.status_interval_s.is_finite() && self.status_interval_s > 0.0) {
             return Err(field("actor.status_interval_s", &self.status_interval_s, "a positive number of seconds"));
+        }
+        // A batch carries two inputs of 40·h values per transition, so which batch sizes fit in
+        // one message depends on the history.
+        let input_dim = self.env.policy_input_dim();
+        let fits_in_a_message = |transitions: usize| {
+            proto::TransitionBatch::largest_encoded_len(transitions, input_dim) <= proto::MAX_MESSAGE_BYTES
+        };
+        if !fits_in_a_message(self.batch_transitions) {
+            return Err(SettingsError::BatchTooLarge {
+                transitions: self.batch_transitions,
+                history: self.env.observation_history,
+                bytes: proto::TransitionBatch::largest_encoded_len(self.batch_transitions, input_dim),
+                max: proto::MAX_MESSAGE_BYTES,
+                fits: (1..self.batch_transitions).rev().find(|&n| fits_in_a_message(n)).unwrap_or(1),
+            });
         }
         Ok(())
     }
@@ -319,6 +340,33 @@ mod tests {
         assert_eq!(ActorSettings::try_from(&wire), Ok(settings.clone()));
         let ladder = ActorSettings::default();
         assert_eq!(ActorSettings::try_from(&proto::ActorSettings::from(&ladder)), Ok(ladder));
+    }
+
+    /// A batch holds two inputs of 40·h values per transition: with a long history the largest
+    /// batch sizes no longer fit in one message, and settings that would make the learner
+    /// refuse every batch are refused up front, on either side of the wire, naming both keys
+    /// and the size that fits.
+    #[test]
+    fn a_batch_that_cannot_fit_in_one_message_is_refused_with_the_size_that_fits() {
+        let mut settings = ActorSettings { batch_transitions: 4096, ..ActorSettings::default() };
+        assert_eq!(settings.validate(), Ok(()), "4096 transitions of 40 values fit");
+        settings.env.observation_history = 8;
+        let Err(SettingsError::BatchTooLarge { transitions, history, bytes, max, fits }) = settings.validate() else {
+            panic!("4096 transitions of 320 values accepted");
+        };
+        assert_eq!((transitions, history, max), (4096, 8, proto::MAX_MESSAGE_BYTES));
+        assert!(bytes > max && fits < 4096, "{bytes} bytes, {fits} fit");
+        let dim = settings.env.policy_input_dim();
+        assert!(proto::TransitionBatch::largest_encoded_len(fits, dim) <= max);
+        assert!(proto::TransitionBatch::largest_encoded_len(fits + 1, dim) > max);
+        let message = settings.validate().unwrap_err().to_string();
+        for named in ["actor.batch_transitions", "env.observation_history", &format!("at most {fits}")] {
+            assert!(message.contains(named), "{named} not in: {message}");
+        }
+        let wire = proto::ActorSettings::from(&settings);
+        assert!(matches!(ActorSettings::try_from(&wire), Err(SettingsError::BatchTooLarge { .. })));
+        settings.batch_transitions = fits;
+        assert_eq!(settings.validate(), Ok(()));
     }
 
     #[test]

@@ -16,10 +16,14 @@ use crate::ProtoError;
 
 pub const ROOT: &str = "crawler";
 
+/// Longest run id, in bytes (all its characters are ASCII).
+pub const MAX_RUN_ID_BYTES: usize = 64;
+
 /// Checks a run id: 1–64 characters of `[A-Za-z0-9_-]`, so it is one key-expression chunk.
 pub fn check_run_id(run: &str) -> Result<(), ProtoError> {
-    let ok =
-        !run.is_empty() && run.len() <= 64 && run.chars().all(|c| c.is_ascii_alphanumeric() || c == '-' || c == '_');
+    let ok = !run.is_empty()
+        && run.len() <= MAX_RUN_ID_BYTES
+        && run.chars().all(|c| c.is_ascii_alphanumeric() || c == '-' || c == '_');
     if ok { Ok(()) } else { Err(ProtoError::BadRunId(crate::validate::quoted_prefix(run))) }
 }
 

@@ -42,9 +42,11 @@ pub use validate::{ProtoError, SequenceTracker, TransitionLimits};
 ///    a learner whose network takes more.
 pub const PROTOCOL_VERSION: u32 = 11;
 
-/// Largest encoded message a node accepts, in bytes. The largest legal messages: a batch of
-/// [`MAX_BATCH_TRANSITIONS`] transitions of 40 values (about 1.4 MB) and the weights of a
-/// network of [`MAX_NETWORK_PARAMETERS`] (about 3.6 MB); the study's network is 780 kB.
+/// Largest encoded message a node accepts, in bytes. The largest legal messages: the weights
+/// of a network of [`MAX_NETWORK_PARAMETERS`] (about 3.6 MB; the study's network is 780 kB)
+/// and a batch of transitions of 40·h values for a policy that sees h observations: 4096 of
+/// 40 values take about 1.4 MB, but not every batch size fits at every h, so senders check
+/// theirs with [`TransitionBatch::largest_encoded_len`].
 pub const MAX_MESSAGE_BYTES: usize = 4 << 20;
 
 /// What zenoh itself buffers of one incoming message before dropping it

@@ -58,6 +58,46 @@ impl TransitionBatch {
     pub fn is_empty(&self) -> bool {
         self.actions.is_empty()
     }
+
+    /// The most bytes a batch of `transitions` transitions of `obs_dim` values each can take
+    /// encoded: every varint at its widest, priorities present, the longest run id. A sender
+    /// checks its settings against [`crate::MAX_MESSAGE_BYTES`] with it before a run starts;
+    /// otherwise the receiver would refuse every batch it sent. Computed from the fields'
+    /// wire types, because encoding a worst-case batch would allocate it; a test holds it
+    /// equal to prost's own `encoded_len` of one.
+    pub fn largest_encoded_len(transitions: usize, obs_dim: usize) -> usize {
+        use prost::encoding::{encoded_len_varint, key_len};
+        const VARINT32: usize = 5;
+        const VARINT64: usize = 10;
+        const FLOAT: usize = 4;
+        const BOOL: usize = 1;
+        let single = |tag: u32, bytes: usize| key_len(tag) + bytes;
+        let length_delimited = |tag: u32, bytes: usize| key_len(tag) + encoded_len_varint(bytes as u64) + bytes;
+        // prost writes no packed field that holds no values.
+        let packed = |tag: u32, bytes: usize| if bytes == 0 { 0 } else { length_delimited(tag, bytes) };
+        let observation_bytes = transitions.saturating_mul(obs_dim).saturating_mul(FLOAT);
+        [
+            single(1, VARINT32),
+            length_delimited(2, crate::keys::MAX_RUN_ID_BYTES),
+            single(3, VARINT32),
+            single(4, VARINT64),
+            single(5, VARINT64),
+            single(6, VARINT32),
+            packed(7, transitions * VARINT32),
+            packed(8, observation_bytes),
+            packed(9, observation_bytes),
+            packed(10, transitions * VARINT32),
+            packed(11, transitions * FLOAT),
+            packed(12, transitions * BOOL),
+            packed(13, transitions * BOOL),
+            packed(14, transitions * FLOAT),
+            single(15, VARINT64),
+            single(16, VARINT64),
+            single(17, VARINT32),
+        ]
+        .iter()
+        .fold(0usize, |total, bytes| total.saturating_add(*bytes))
+    }
 }
 
 /// The Q-network's shape.

@@ -109,3 +109,47 @@ proptest! {
         }
     }
 }
+
+/// A batch whose every field is as wide as the wire allows.
+fn widest_batch(transitions: usize, obs_dim: usize) -> TransitionBatch {
+    TransitionBatch {
+        protocol_version: u32::MAX,
+        run_id: "r".repeat(crawler_proto::keys::MAX_RUN_ID_BYTES),
+        actor_id: u32::MAX,
+        sequence: u64::MAX,
+        incarnation: u64::MAX,
+        obs_dim: u32::MAX,
+        env_ids: vec![u32::MAX; transitions],
+        observations: vec![f32::MAX; transitions * obs_dim],
+        next_observations: vec![f32::MAX; transitions * obs_dim],
+        actions: vec![u32::MAX; transitions],
+        rewards: vec![f32::MAX; transitions],
+        terminated: vec![true; transitions],
+        truncated: vec![true; transitions],
+        priorities: vec![f32::MAX; transitions],
+        weights_version: u64::MAX,
+        physics_steps: u64::MAX,
+        count: u32::MAX,
+    }
+}
+
+/// The bound senders check their settings with is exactly what prost encodes for the widest
+/// batch, across the sizes where length prefixes change width.
+#[test]
+fn the_largest_batch_bound_is_what_prost_encodes_for_the_widest_batch() {
+    for transitions in [1, 2, 25, 26, 255, 256, 4096] {
+        for obs_dim in [1, 40, 120, 320] {
+            let widest = widest_batch(transitions, obs_dim);
+            assert_eq!(
+                TransitionBatch::largest_encoded_len(transitions, obs_dim),
+                widest.encoded_len(),
+                "{transitions} transitions of {obs_dim} values"
+            );
+        }
+    }
+    // The presets' batches (256 transitions of 40 values) are far inside the message limit;
+    // the protocol's largest batch of eight stacked observations is not.
+    assert!(TransitionBatch::largest_encoded_len(256, 40) < crawler_proto::MAX_MESSAGE_BYTES / 10);
+    let stacked = TransitionBatch::largest_encoded_len(crawler_proto::MAX_BATCH_TRANSITIONS, 8 * 40);
+    assert!(stacked > crawler_proto::MAX_MESSAGE_BYTES, "{stacked}");
+}

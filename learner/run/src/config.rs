@@ -600,6 +600,11 @@ mod tests {
         assert!(err.contains("dqn.lr") && err.contains("(0, 1)"), "{err}");
         let err = TrainConfig::from_toml("", "test", &["env.action_levels=1".into()]).unwrap_err().to_string();
         assert!(err.contains("env.action_levels"), "{err}");
+        // Batches too large for one message at this history: refused before a run starts
+        // rather than every batch refused by the learner later.
+        let overrides = ["actor.batch_transitions=4096".into(), "env.observation_history=8".into()];
+        let err = TrainConfig::from_toml("", "test", &overrides).unwrap_err().to_string();
+        assert!(err.contains("actor.batch_transitions") && err.contains("env.observation_history"), "{err}");
         let err = TrainConfig::from_toml("[dqn]\nlrr = 1\n", "test", &[]).unwrap_err().to_string();
         assert!(err.contains("lrr"), "{err}");
         assert!(matches!(TrainConfig::from_toml("", "t", &["nonsense".into()]), Err(ConfigError::Override(_))));
