@@ -21,8 +21,8 @@ pub enum SettingsError {
     Exploration { exploration: Exploration, allowed: &'static str },
     #[error(
         "actor.batch_transitions = {transitions} with env.observation_history = {history} makes \
-         messages of up to {bytes} bytes, over the protocol's limit of {max}: the learner would \
-         refuse every batch. Set actor.batch_transitions to at most {fits}"
+         messages of up to {bytes} bytes, over the protocol's limit of {max} bytes, and the \
+         learner refuses such batches. Set actor.batch_transitions to at most {fits}"
     )]
     BatchTooLarge { transitions: usize, history: u32, bytes: usize, max: usize, fits: usize },
 }

@@ -72,7 +72,8 @@ impl TransitionBatch {
         const FLOAT: usize = 4;
         const BOOL: usize = 1;
         let single = |tag: u32, bytes: usize| key_len(tag) + bytes;
-        let length_delimited = |tag: u32, bytes: usize| key_len(tag) + encoded_len_varint(bytes as u64) + bytes;
+        let length_delimited =
+            |tag: u32, bytes: usize| (key_len(tag) + encoded_len_varint(bytes as u64)).saturating_add(bytes);
         // prost writes no packed field that holds no values.
         let packed = |tag: u32, bytes: usize| if bytes == 0 { 0 } else { length_delimited(tag, bytes) };
         let observation_bytes = transitions.saturating_mul(obs_dim).saturating_mul(FLOAT);
@@ -83,14 +84,14 @@ impl TransitionBatch {
             single(4, VARINT64),
             single(5, VARINT64),
             single(6, VARINT32),
-            packed(7, transitions * VARINT32),
+            packed(7, transitions.saturating_mul(VARINT32)),
             packed(8, observation_bytes),
             packed(9, observation_bytes),
-            packed(10, transitions * VARINT32),
-            packed(11, transitions * FLOAT),
-            packed(12, transitions * BOOL),
-            packed(13, transitions * BOOL),
-            packed(14, transitions * FLOAT),
+            packed(10, transitions.saturating_mul(VARINT32)),
+            packed(11, transitions.saturating_mul(FLOAT)),
+            packed(12, transitions.saturating_mul(BOOL)),
+            packed(13, transitions.saturating_mul(BOOL)),
+            packed(14, transitions.saturating_mul(FLOAT)),
             single(15, VARINT64),
             single(16, VARINT64),
             single(17, VARINT32),

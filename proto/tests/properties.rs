@@ -152,4 +152,7 @@ fn the_largest_batch_bound_is_what_prost_encodes_for_the_widest_batch() {
     assert!(TransitionBatch::largest_encoded_len(256, 40) < crawler_proto::MAX_MESSAGE_BYTES / 10);
     let stacked = TransitionBatch::largest_encoded_len(crawler_proto::MAX_BATCH_TRANSITIONS, 8 * 40);
     assert!(stacked > crawler_proto::MAX_MESSAGE_BYTES, "{stacked}");
+    // Sizes no batch could have saturate instead of overflowing.
+    assert_eq!(TransitionBatch::largest_encoded_len(usize::MAX, 320), usize::MAX);
+    assert_eq!(TransitionBatch::largest_encoded_len(usize::MAX / 2, 0), usize::MAX);
 }
