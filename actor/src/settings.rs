@@ -122,16 +122,18 @@ impl ActorSettings {
         // A batch carries two inputs of 40·h values per transition, so which batch sizes fit in
         // one message depends on the history.
         let input_dim = self.env.policy_input_dim();
-        let fits_in_a_message = |transitions: usize| {
-            proto::TransitionBatch::largest_encoded_len(transitions, input_dim) <= proto::MAX_MESSAGE_BYTES
-        };
-        if !fits_in_a_message(self.batch_transitions) {
+        let largest_batch = |transitions: usize| proto::TransitionBatch::largest_encoded_len(transitions, input_dim);
+        let bytes = largest_batch(self.batch_transitions);
+        if bytes > proto::MAX_MESSAGE_BYTES {
             return Err(SettingsError::BatchTooLarge {
                 transitions: self.batch_transitions,
                 history: self.env.observation_history,
-                bytes: proto::TransitionBatch::largest_encoded_len(self.batch_transitions, input_dim),
+                bytes,
                 max: proto::MAX_MESSAGE_BYTES,
-                fits: (1..self.batch_transitions).rev().find(|&n| fits_in_a_message(n)).unwrap_or(1),
+                fits: (1..self.batch_transitions)
+                    .rev()
+                    .find(|&n| largest_batch(n) <= proto::MAX_MESSAGE_BYTES)
+                    .unwrap_or(1),
             });
         }
         Ok(())
