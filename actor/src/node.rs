@@ -575,6 +575,7 @@ impl EpisodeStatsSource<'_> {
             return_upright: summary.reward.upright,
             return_tilt_rate: summary.reward.tilt_rate,
             return_base_impact: summary.reward.base_impact,
+            return_joint_limit: summary.reward.joint_limit,
             distance: summary.distance,
             duration: summary.duration,
             speed: summary.speed,

@@ -178,6 +178,7 @@ impl From<&EnvConfig> for proto::EnvSettings {
             max_tilt_deg: env.max_tilt_deg,
             tilt_rate_penalty: env.tilt_rate_penalty,
             base_impact_penalty: env.base_impact_penalty,
+            joint_limit_penalty: env.joint_limit_penalty,
             base_impact_threshold: env.base_impact_threshold,
             position_reward_weight: env.position_reward_weight,
             observation_history: env.observation_history,
@@ -256,6 +257,7 @@ impl TryFrom<&proto::EnvSettings> for EnvConfig {
             max_tilt_deg: env.max_tilt_deg,
             tilt_rate_penalty: env.tilt_rate_penalty,
             base_impact_penalty: env.base_impact_penalty,
+            joint_limit_penalty: env.joint_limit_penalty,
             base_impact_threshold: env.base_impact_threshold,
             position_reward_weight: env.position_reward_weight,
             observation_history: env.observation_history,
@@ -329,6 +331,7 @@ mod tests {
         settings.env.action_repeat = 10;
         settings.env.max_tilt_deg = 60.0;
         settings.env.tilt_rate_penalty = 0.02;
+        settings.env.joint_limit_penalty = 500.0;
         settings.env.position_reward_weight = 3.0;
         settings.env.observation_history = 4;
         settings.env.contact_prediction = 0.004;

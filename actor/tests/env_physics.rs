@@ -243,7 +243,7 @@ fn the_rocking_penalty_charges_a_rocking_gait_and_nothing_else() {
         for step in 0..1_000_u32 {
             let outcome = crawler.step_torques(SquareWaveGait::TUMBLES_IN_MUJOCO.torques(step as f32 * dt));
             let reward = outcome.reward;
-            let parts = reward.position + reward.upright + reward.tilt_rate + reward.base_impact;
+            let parts = reward.position + reward.upright + reward.tilt_rate + reward.base_impact + reward.joint_limit;
             assert!((reward.total() - parts).abs() < 1e-6);
             assert!((-0.5..=0.0).contains(&reward.tilt_rate), "{reward:?}");
             total += reward.total();
@@ -264,6 +264,48 @@ fn the_rocking_penalty_charges_a_rocking_gait_and_nothing_else() {
     let mut still = Crawler::new(EnvConfig { tilt_rate_penalty: 1.0, ..endless() }, 0);
     let idle: f32 = (0..500).map(|_| still.step_torques([0.0, 0.0]).reward.tilt_rate).sum();
     assert!(idle > -1e-3, "{idle}");
+}
+
+#[test]
+fn the_joint_limit_penalty_charges_each_step_past_a_limit_by_how_far() {
+    // The tumbling gait drives both joints past their soft limits for much of each period.
+    // Each physics step's charge is −w·dt·Σ overshoot (capped at 0.5), read from the joint
+    // angles the step ends at; a step within the limits costs nothing, and the other parts of
+    // the reward are those of the unpenalised run (the penalty changes the reward, never the
+    // physics).
+    let overshoot = |[q1, q2]: [f32; 2]| {
+        let past = |angle: f32, [low, high]: [f32; 2]| (low - angle).max(angle - high).max(0.0);
+        past(q1, JOINT1_RANGE) + past(q2, JOINT2_RANGE)
+    };
+    let run = |joint_limit_penalty: f32| {
+        let mut crawler = Crawler::new(EnvConfig { joint_limit_penalty, action_repeat: 1, ..endless() }, 0);
+        let dt = crawler.config().dt;
+        let (mut steps_past, mut steps_within) = (0, 0);
+        for step in 0..1_000_u32 {
+            let reward = crawler.step_torques(SquareWaveGait::TUMBLES_IN_MUJOCO.torques(step as f32 * dt)).reward;
+            let past = overshoot(crawler.joint_angles());
+            let expected = -(joint_limit_penalty * dt * past).min(0.5);
+            assert!((reward.joint_limit - expected).abs() <= 1e-6, "step {step}: {reward:?}, {past} rad past");
+            let parts = reward.position + reward.upright + reward.tilt_rate + reward.base_impact + reward.joint_limit;
+            assert!((reward.total() - parts).abs() < 1e-6, "{reward:?}");
+            if past > 0.0 {
+                steps_past += 1;
+            } else {
+                steps_within += 1;
+            }
+        }
+        (crawler.episode_summary(None), steps_past, steps_within)
+    };
+    let (plain, steps_past, steps_within) = run(0.0);
+    assert!(steps_past > 100 && steps_within > 100, "{steps_past} steps past a limit, {steps_within} within");
+    assert_eq!(plain.reward.joint_limit, 0.0, "no penalty by default: the study's reward");
+    let (light, _, _) = run(100.0);
+    let (heavy, _, _) = run(1000.0);
+    assert!(
+        light.reward.joint_limit < 0.0 && heavy.reward.joint_limit < 2.0 * light.reward.joint_limit,
+        "{light:?} {heavy:?}"
+    );
+    assert_eq!((heavy.reward.position, heavy.reward.upright), (plain.reward.position, plain.reward.upright));
 }
 
 #[test]
@@ -431,6 +473,10 @@ fn bad_settings_are_rejected_by_name() {
     for penalty in [-0.1, f32::NAN, 11.0] {
         let bad = EnvConfig { tilt_rate_penalty: penalty, ..EnvConfig::default() };
         assert!(bad.validate().unwrap_err().to_string().contains("env.tilt_rate_penalty"), "{penalty}");
+    }
+    for penalty in [-0.1, f32::NAN, f32::INFINITY, 10_001.0] {
+        let bad = EnvConfig { joint_limit_penalty: penalty, ..EnvConfig::default() };
+        assert!(bad.validate().unwrap_err().to_string().contains("env.joint_limit_penalty"), "{penalty}");
     }
     for penalty in [-0.1, f32::NAN, 51.0] {
         let bad = EnvConfig { base_impact_penalty: penalty, ..EnvConfig::default() };

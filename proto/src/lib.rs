@@ -40,7 +40,10 @@ pub use validate::{ProtoError, SequenceTracker, TransitionLimits};
 /// 11: the env settings carry how many decisions' observations the policy sees
 ///    (`EnvSettings.observation_history`); an older actor would send 40-value observations to
 ///    a learner whose network takes more.
-pub const PROTOCOL_VERSION: u32 = 11;
+/// 12: the env settings carry the penalty on the joints' excursions past their limits
+///    (`EnvSettings.joint_limit_penalty`) and episode stats its part of the return
+///    (`EpisodeStats.return_joint_limit`); an older actor would train on another reward.
+pub const PROTOCOL_VERSION: u32 = 12;
 
 /// Largest encoded message a node accepts, in bytes. The largest legal messages: the weights
 /// of a network of [`MAX_NETWORK_PARAMETERS`] (about 3.6 MB; the study's network is 780 kB)

@@ -220,6 +220,10 @@ pub struct EnvSettings {
     /// Observations the policy sees per decision, newest first; 1: the study's 40 values.
     #[prost(uint32, tag = "21")]
     pub observation_history: u32,
+    /// Weight of the penalty on the joints' excursions past their limits, per rad·s; 0: none
+    /// (the study's reward).
+    #[prost(float, tag = "22")]
+    pub joint_limit_penalty: f32,
 }
 
 /// Ranges drawn once per episode (`crawler_actor::env::Randomization` documents each); every
@@ -326,6 +330,9 @@ pub struct EpisodeStats {
     /// The landing penalty's part of the return (≤ 0; 0 where the env has none).
     #[prost(float, tag = "17")]
     pub return_base_impact: f32,
+    /// The joint-limit penalty's part of the return (≤ 0; 0 where the env has none).
+    #[prost(float, tag = "18")]
+    pub return_joint_limit: f32,
     /// Metres in the rewarded direction.
     #[prost(float, tag = "8")]
     pub distance: f32,

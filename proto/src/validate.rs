@@ -273,9 +273,9 @@ pub mod report_limits {
     pub const MAX_ABS_DISTANCE: f32 = 1e5;
     /// s of simulated time in one episode (the longest is 500 × 100 000 × 0.02 s).
     pub const MAX_DURATION: f32 = 1e6;
-    /// |return| of one episode: at most 10.5 per physics step (5.5 with the largest position
-    /// reward weight, 10, plus a landing charge of at most 5), so at most 5.25e8 over the
-    /// longest episode.
+    /// |return| of one episode: at most 11 per physics step (5.5 with the largest position
+    /// reward weight, 10, plus a landing charge of at most 5 and a joint-limit charge of at
+    /// most 0.5), so at most 5.5e8 over the longest episode.
     pub const MAX_ABS_RETURN: f32 = 1e9;
     /// Decisions per second one actor can report.
     pub const MAX_STEPS_PER_SECOND: f32 = 1e8;
@@ -303,6 +303,7 @@ pub fn episode_stats(bytes: &[u8], run_id: &str) -> Result<EpisodeStats, ProtoEr
         stats.return_upright,
         stats.return_tilt_rate,
         stats.return_base_impact,
+        stats.return_joint_limit,
         stats.distance,
         stats.duration,
         stats.speed,
@@ -316,6 +317,7 @@ pub fn episode_stats(bytes: &[u8], run_id: &str) -> Result<EpisodeStats, ProtoEr
         stats.return_upright,
         stats.return_tilt_rate,
         stats.return_base_impact,
+        stats.return_joint_limit,
     ];
     within("episode returns", &returns, -MAX_ABS_RETURN, MAX_ABS_RETURN)?;
     within("distance", &[stats.distance], -MAX_ABS_DISTANCE, MAX_ABS_DISTANCE)?;
@@ -602,6 +604,11 @@ mod tests {
         assert!(episode_stats(&episode(0.9, 0.0).encode_to_vec(), "r").is_ok());
         assert_eq!(episode_stats(&episode(3e38, 0.0).encode_to_vec(), "r").unwrap_err().kind(), "out_of_range");
         assert_eq!(episode_stats(&episode(0.5, f64::NAN).encode_to_vec(), "r").unwrap_err().kind(), "non_finite");
+        // Each part of the return is checked, the joint-limit charge's too.
+        let limit_charge = |value: f32| EpisodeStats { return_joint_limit: value, ..episode(0.5, 0.0) };
+        assert!(episode_stats(&limit_charge(-12.0).encode_to_vec(), "r").is_ok());
+        assert_eq!(episode_stats(&limit_charge(f32::NAN).encode_to_vec(), "r").unwrap_err().kind(), "non_finite");
+        assert_eq!(episode_stats(&limit_charge(-3e9).encode_to_vec(), "r").unwrap_err().kind(), "out_of_range");
     }
 
     #[test]

@@ -8,6 +8,11 @@ Run through scripts/mujoco-check, which installs the pinned MuJoCo into a cached
                      own action levels, torque limit, action repeat and direction. Prints one
                      JSON object: per-episode speed, flips, joint-limit overshoot, and the
                      summary (mean, min, stuck episodes).
+  scan CHECKPOINTS    every kept checkpoint of a run (every --every'th step-* directory, then
+                     its average and best) played as eval plays one: a JSON line each, then
+                     the fastest of those upright (no flip, no stuck episode) in every episode.
+                     Its start poses come from another seed than eval's, so a checkpoint
+                     chosen from a scan is confirmed by eval on starts it was not chosen on.
   observe Q1 Q2      the observation after a reset to joint angles (Q1, Q2) in radians and
                      --steps physics steps of the constant --torques, as JSON: the layout
                      check against the Rust env (tests/tests/outputs.rs).
@@ -102,6 +107,9 @@ class Crawler:
         self.flipped = False
         self.flips = 0
         self.overshoot = 0.0  # largest excursion beyond a joint limit, radians
+        self.steps = 0
+        self.overshoot_sum = 0.0  # both joints' excursions beyond their limits, summed over steps (rad)
+        self.steps_past_limit = 0
         self.impact_impulse = 0.0  # base contact force above the threshold, integrated (N·s)
         self.start_x = float(self.data.qpos[0])
 
@@ -117,6 +125,12 @@ class Crawler:
         q1, q2 = self.data.qpos[7], self.data.qpos[8]
         beyond = max(JOINT1_RANGE[0] - q1, q1 - JOINT1_RANGE[1], JOINT2_RANGE[0] - q2, q2 - JOINT2_RANGE[1], 0.0)
         self.overshoot = max(self.overshoot, beyond)
+        # What env.joint_limit_penalty charges: both joints' excursions, summed.
+        both = (max(JOINT1_RANGE[0] - q1, q1 - JOINT1_RANGE[1], 0.0)
+                + max(JOINT2_RANGE[0] - q2, q2 - JOINT2_RANGE[1], 0.0))
+        self.steps += 1
+        self.overshoot_sum += both
+        self.steps_past_limit += both > 0.0
         self.impact_impulse += self.dt * max(self.base_contact_force() - BASE_IMPACT_THRESHOLD, 0.0)
 
     def base_contact_force(self) -> float:
@@ -173,13 +187,14 @@ class Mlp:
         self.output = (weights[f"{last}.weight"], weights[f"{last}.bias"])
 
     def __call__(self, x: np.ndarray) -> np.ndarray:
+        """Q-values of one input (a vector) or of a batch of them (one per row)."""
         for weight, bias, norm in self.layers:
-            x = weight @ x + bias
+            x = x @ weight.T + bias
             if norm is not None:
-                mean, var = x.mean(), x.var()
+                mean, var = x.mean(axis=-1, keepdims=True), x.var(axis=-1, keepdims=True)
                 x = (x - mean) / np.sqrt(var + 1e-5) * norm[0] + norm[1]
             x = np.maximum(x, 0.0)
-        return self.output[0] @ x + self.output[1]
+        return x @ self.output[0].T + self.output[1]
 
 
 class PolicyInput:
@@ -237,68 +252,126 @@ def act(args) -> None:
             print(int(np.argmax(policy(observation))))
 
 
-def evaluate(args) -> None:
-    checkpoint, meta, policy = load_policy(Path(args.checkpoints))
+def play(checkpoint: Path, meta: dict, policy: Mlp, episodes: int, seconds: float, seed: int,
+         action_repeat: int | None = None) -> dict:
+    """Greedy episodes of one checkpoint on the study's model: each episode's speed, flips,
+    joint-limit overshoot and base landings, and their summary."""
     env = meta["config"].get("env", {})
     torques_of = action_torques(env)
-    repeat = int(args.action_repeat or env.get("action_repeat", 1))
+    repeat = int(action_repeat or env.get("action_repeat", 1))
     direction = -1.0 if env.get("direction", "forward") == "backward" else 1.0
     start1 = env.get("start_joint1_deg", [-45.0, 0.0])
     start2 = env.get("start_joint2_deg", [-22.5, 22.5])
 
-    crawler = Crawler()
-    steps = round(args.seconds / crawler.dt)
-    rng = np.random.default_rng(args.seed)
-    episodes = []
-    for _ in range(args.episodes):
+    # The episodes run in lockstep, so that the network answers all of them in one batch.
+    rng = np.random.default_rng(seed)
+    crawlers = []
+    for _ in range(episodes):
         q1 = rng.uniform(*start1) * DEG
         q2 = rng.uniform(*start2) * DEG
+        crawler = Crawler()
         crawler.reset(q1, q2)
-        torques = np.zeros(2)
-        inputs = PolicyInput(env)
-        step = 0
-        while step < steps:
-            frame = crawler.observe(torques)
-            action = int(np.argmax(policy(inputs.first(frame) if step == 0 else inputs.next(frame))))
-            torques = torques_of(action)
-            for _ in range(min(repeat, steps - step)):
-                crawler.step(torques)
-                step += 1
-        speed = crawler.distance(direction) / args.seconds
-        episodes.append(
-            {
-                "speed": speed,
-                "flips": crawler.flips,
-                "joint_limit_overshoot_deg": crawler.overshoot / DEG,
-                "base_impact_impulse": crawler.impact_impulse,
-            }
-        )
-    speeds = np.array([e["speed"] for e in episodes])
+        crawlers.append(crawler)
+    steps = round(seconds / crawlers[0].dt)
+    inputs = [PolicyInput(env) for _ in crawlers]
+    torques = [np.zeros(2) for _ in crawlers]
+    step = 0
+    while step < steps:
+        batch = np.stack([
+            source.first(crawler.observe(held)) if step == 0 else source.next(crawler.observe(held))
+            for crawler, source, held in zip(crawlers, inputs, torques)
+        ])
+        torques = [torques_of(int(action)) for action in np.argmax(policy(batch), axis=-1)]
+        held_for = min(repeat, steps - step)
+        for crawler, held in zip(crawlers, torques):
+            for _ in range(held_for):
+                crawler.step(held)
+        step += held_for
+    played = [
+        {
+            "speed": crawler.distance(direction) / seconds,
+            "flips": crawler.flips,
+            "joint_limit_overshoot_deg": crawler.overshoot / DEG,
+            "share_of_steps_past_a_limit": crawler.steps_past_limit / max(crawler.steps, 1),
+            "mean_limit_overshoot_rad": crawler.overshoot_sum / max(crawler.steps, 1),
+            "base_impact_impulse": crawler.impact_impulse,
+        }
+        for crawler in crawlers
+    ]
+    speeds = np.array([e["speed"] for e in played])
     summary = {
         "mean_speed": float(speeds.mean()),
         "std_speed": float(speeds.std()),
         "min_speed": float(speeds.min()),
         "stuck_episodes": int((speeds < STUCK_SPEED).sum()),
-        "flips": int(sum(e["flips"] for e in episodes)),
-        "max_joint_limit_overshoot_deg": float(max(e["joint_limit_overshoot_deg"] for e in episodes)),
-        "mean_base_impact_impulse": float(np.mean([e["base_impact_impulse"] for e in episodes])),
+        "flips": int(sum(e["flips"] for e in played)),
+        "max_joint_limit_overshoot_deg": float(max(e["joint_limit_overshoot_deg"] for e in played)),
+        "share_of_steps_past_a_limit": float(np.mean([e["share_of_steps_past_a_limit"] for e in played])),
+        "mean_limit_overshoot_rad": float(np.mean([e["mean_limit_overshoot_rad"] for e in played])),
+        "mean_base_impact_impulse": float(np.mean([e["base_impact_impulse"] for e in played])),
     }
-    report = {
+    return {
         "engine": f"mujoco {mujoco.__version__}",
         "checkpoint": str(checkpoint),
         "action_repeat": repeat,
-        "episodes": episodes,
+        "episodes": played,
         "summary": summary,
     }
+
+
+def evaluate(args) -> None:
+    if args.episodes < 1:
+        sys.exit("error: --episodes must be at least 1")
+    checkpoint, meta, policy = load_policy(Path(args.checkpoints))
+    report = play(checkpoint, meta, policy, args.episodes, args.seconds, args.seed, args.action_repeat)
+    summary, episodes = report["summary"], report["episodes"]
     json.dump(report, sys.stdout)
     print()
     print(
         f"MuJoCo: {summary['mean_speed']:.3f} ± {summary['std_speed']:.3f} m/s, min {summary['min_speed']:.3f}, "
         f"{summary['stuck_episodes']}/{len(episodes)} stuck, {summary['flips']} flips, "
-        f"overshoot ≤ {summary['max_joint_limit_overshoot_deg']:.1f}°, "
+        f"overshoot ≤ {summary['max_joint_limit_overshoot_deg']:.1f}° "
+        f"({summary['share_of_steps_past_a_limit']:.0%} of steps past a limit), "
         f"base landings {summary['mean_base_impact_impulse']:.2f} N·s over {BASE_IMPACT_THRESHOLD:.0f} N",
         file=sys.stderr,
     )
+
+
+def scanned_checkpoints(path: Path, every: int) -> list[Path]:
+    """A run's checkpoints in training order (every `every`-th step-* directory), then its
+    `average` and `best` where the run kept them."""
+    steps = sorted(
+        (p for p in path.glob("step-*") if (p / "meta.json").exists()), key=lambda p: int(p.name.split("-")[1])
+    )
+    chosen = steps[::-1][::every][::-1]  # counted back from the newest, so the newest is in
+    chosen += [path / name for name in ("average", "best") if (path / name / "meta.json").exists()]
+    if not chosen:
+        sys.exit(f"error: no checkpoint in {path}; point at a run's checkpoints directory")
+    return chosen
+
+
+def scan(args) -> None:
+    """Every kept checkpoint of a run on the study's model, the sim-to-sim check of each
+    candidate a run could ship (legged_gym's and humanoid-gym's play-in-MuJoCo step, over a
+    whole run rather than one checkpoint)."""
+    if args.episodes < 1 or args.every < 1:
+        sys.exit("error: --episodes and --every must be at least 1")
+    rows = []
+    for checkpoint in scanned_checkpoints(Path(args.checkpoints), args.every):
+        meta = json.loads((checkpoint / "meta.json").read_text())
+        policy = Mlp(load_file(str(checkpoint / "weights.safetensors")), meta["network"])
+        summary = play(checkpoint, meta, policy, args.episodes, args.seconds, args.seed)["summary"]
+        row = {"checkpoint": str(checkpoint), "updates": meta.get("progress", {}).get("updates"), **summary}
+        rows.append(row)
+        print(json.dumps(row), flush=True)
+    upright = sorted(
+        (r for r in rows if r["flips"] == 0 and r["stuck_episodes"] == 0), key=lambda r: -r["mean_speed"]
+    )
+    print(f"{len(upright)} of {len(rows)} checkpoints crawl upright in all {args.episodes} episodes "
+          f"(seed {args.seed}); the fastest:", file=sys.stderr)
+    for r in upright[: args.top]:
+        print(f"  {r['mean_speed']:.3f} ± {r['std_speed']:.3f} m/s, min {r['min_speed']:.3f}  {r['checkpoint']}",
+              file=sys.stderr)
 
 
 def square_wave(gait: dict, t: float) -> list:
@@ -497,6 +570,11 @@ def replay(args) -> None:
                  for s, reply in zip(starts, replies)]
             )
             row[name] = {"mean_abs": float(np.abs(differences).mean()), "mean": float(differences.mean())}
+        # How far the base gets here against there from the same states: a lead that grows
+        # with the horizon is ground this engine gains that a policy trained here banks on.
+        theirs = float(np.mean([qpos[s + h][0] - qpos[s][0] for s in starts]))
+        ours = float(np.mean([reply[h - 1]["qpos"][0] - qpos[s][0] for s, reply in zip(starts, replies)]))
+        row["progress_ratio"] = ours / theirs if abs(theirs) > 1e-9 else None
         table[h] = row
     # One-step differences by what the crawler is doing at the start: where the engines
     # disagree about single steps says which part of the physics differs.
@@ -568,7 +646,9 @@ def replay(args) -> None:
           f"({report['mujoco_speed']:.3f} m/s, {crawler.flips} flips there):", file=sys.stderr)
     for h, row in table.items():
         cells = ", ".join(f"{name} {row[name]['mean_abs']:.3g} ({row[name]['mean']:+.3g})" for name in measures)
-        print(f"  after {h} steps, mean |rapier − MuJoCo| (mean signed): {cells}", file=sys.stderr)
+        ratio = "n/a" if row["progress_ratio"] is None else f"{row['progress_ratio']:.3f}"
+        print(f"  after {h} steps, mean |rapier − MuJoCo| (mean signed): {cells}; base progress here / "
+              f"there {ratio}", file=sys.stderr)
     for phase, row in by_phase.items():
         print(f"  one step from {row['replays']} states '{phase}': mean |Δ| pitch rate {row['pitch_rate']:.3g}, "
               f"q1 rate {row['q1_rate']:.3g}, q2 rate {row['q2_rate']:.3g} rad/s", file=sys.stderr)
@@ -645,6 +725,17 @@ def main() -> None:
     eval_parser.add_argument("--seed", type=int, default=1_000_000)
     eval_parser.add_argument("--action-repeat", type=int, help="override the checkpoint's action repeat")
     eval_parser.set_defaults(run=evaluate)
+    scan_parser = commands.add_parser("scan", help="every kept checkpoint of a run in MuJoCo")
+    scan_parser.add_argument("checkpoints", help="a run's checkpoints directory")
+    scan_parser.add_argument("--episodes", type=int, default=10)
+    scan_parser.add_argument("--seconds", type=float, default=20.0)
+    scan_parser.add_argument(
+        "--seed", type=int, default=2_000_000,
+        help="start poses' seed; not eval's, so a checkpoint chosen here is confirmed on other starts",
+    )
+    scan_parser.add_argument("--every", type=int, default=1, help="play every n-th step-* checkpoint")
+    scan_parser.add_argument("--top", type=int, default=10, help="upright checkpoints listed on stderr")
+    scan_parser.set_defaults(run=scan)
     act_parser = commands.add_parser("act", help="greedy actions for observations on stdin")
     act_parser.add_argument("checkpoints")
     act_parser.set_defaults(run=act)

@@ -16,6 +16,11 @@ pub const MAX_POSITION_REWARD_WEIGHT: f32 = 10.0;
 /// far beyond any measured (EXPERIMENTS.md: 5–17).
 pub const MAX_BASE_IMPACT_PENALTY: f32 = 50.0;
 
+/// Largest `env.joint_limit_penalty`, per rad·s past the limits. As with the landing penalty
+/// a physics step's charge is capped on its own (`MAX_JOINT_LIMIT_CHARGE`, `crawler.rs`); this
+/// only refuses weights that would charge any touch of a limit the whole cap.
+pub const MAX_JOINT_LIMIT_PENALTY: f32 = 10_000.0;
+
 /// Which way along x the crawler is rewarded for moving.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, Default)]
 #[serde(rename_all = "lowercase")]
@@ -97,6 +102,14 @@ pub struct EnvConfig {
     /// a second of rocking at ω costs w·ω². Gaits that jolt the base about its edges are the
     /// ones that crawl here and tumble on the study's model (EXPERIMENTS.md, "Fidelity").
     pub tilt_rate_penalty: f32,
+    /// Weight w of a penalty on the joints' excursions past their limits (0: the study's
+    /// reward, none). Each physics step adds −w·dt·Σ overshoot, the sum over both joints of
+    /// how far each is past its limit in rad (legged_gym's `dof_pos_limits` term), at most 0.5
+    /// in magnitude: a second spent 0.01 rad past a limit costs 0.01·w. The joint limits are
+    /// soft on the study's model, and from states past a limit this engine moves the base
+    /// further than MuJoCo does; trained gaits come to lean on them more and more, and carry
+    /// over worse as they do (EXPERIMENTS.md, "Session 35").
+    pub joint_limit_penalty: f32,
     /// Weight w of a penalty on hard landings of the base (0: the study's reward, none). Each
     /// physics step adds −w·dt·max(0, F − `base_impact_threshold`), F being the total normal
     /// force the base's contacts carried in that step, in N, at most 5 in magnitude (ten steps'
@@ -139,6 +152,7 @@ impl Default for EnvConfig {
             max_tilt_deg: 180.0,
             position_reward_weight: 1.0,
             tilt_rate_penalty: 0.0,
+            joint_limit_penalty: 0.0,
             base_impact_penalty: 0.0,
             base_impact_threshold: 50.0,
             observation_history: 1,
@@ -231,6 +245,13 @@ impl EnvConfig {
             "tilt_rate_penalty",
             penalty,
             "a weight in [0, 10] (0: no penalty, the study's reward)",
+        )?;
+        let penalty = self.joint_limit_penalty;
+        check(
+            penalty.is_finite() && (0.0..=MAX_JOINT_LIMIT_PENALTY).contains(&penalty),
+            "joint_limit_penalty",
+            penalty,
+            "a weight in [0, 10000] per rad·s (0: no penalty, the study's reward)",
         )?;
         let penalty = self.base_impact_penalty;
         check(

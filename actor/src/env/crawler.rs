@@ -18,6 +18,10 @@ use super::randomization::EpisodePhysics;
 /// degenerate contact cannot swamp a whole episode's return.
 const MAX_BASE_IMPACT_CHARGE: f32 = 5.0;
 
+/// The most one physics step's joint-limit penalty may charge ([`Reward::joint_limit`]): as
+/// much as a step's upright reward, so a limit slammed far past cannot swamp an episode.
+const MAX_JOINT_LIMIT_CHARGE: f32 = 0.5;
+
 /// The reward of one decision step, by component. Both are sums over the physics steps the
 /// decision was held for, so their scale per second does not depend on the action repeat.
 #[derive(Debug, Clone, Copy, Default, PartialEq)]
@@ -34,22 +38,28 @@ pub struct Reward {
     /// `−min(w·dt·max(0, F − F₀), 5)` with w the env's `base_impact_penalty` (0 by default),
     /// F the base's contact force and F₀ `base_impact_threshold`: hard landings of the base.
     pub base_impact: f32,
+    /// `−min(w·dt·Σ overshoot, 0.5)` with w the env's `joint_limit_penalty` (0 by default) and
+    /// the sum over both joints of how far each is past its limit, in rad (legged_gym's
+    /// `dof_pos_limits` term): gaits that lean on the limits.
+    pub joint_limit: f32,
 }
 
 impl Reward {
     pub fn total(&self) -> f32 {
-        self.position + self.upright + self.tilt_rate + self.base_impact
+        self.position + self.upright + self.tilt_rate + self.base_impact + self.joint_limit
     }
 
     /// The largest |total| one decision can earn under `config`, which the learner uses to
     /// reject out-of-range rewards from the network. Each physics step earns a position reward
     /// in (−0.5·k, 0.5·k) (k the env's `position_reward_weight`), an upright reward in
     /// [0, 0.5] and a tilt-rate charge in [−0.5, 0], so at most 0.5·k + 0.5 in magnitude, plus
-    /// a landing charge of at most [`MAX_BASE_IMPACT_CHARGE`] where the env charges landings;
+    /// a landing charge of at most [`MAX_BASE_IMPACT_CHARGE`] where the env charges landings
+    /// and a joint-limit charge of at most [`MAX_JOINT_LIMIT_CHARGE`] where it charges those;
     /// the margin covers rounding.
     pub fn max_abs_total(config: &EnvConfig) -> f32 {
         let landing = if config.base_impact_penalty > 0.0 { MAX_BASE_IMPACT_CHARGE } else { 0.0 };
-        let per_step = 0.5 * config.position_reward_weight + 0.5 + landing;
+        let limits = if config.joint_limit_penalty > 0.0 { MAX_JOINT_LIMIT_CHARGE } else { 0.0 };
+        let per_step = 0.5 * config.position_reward_weight + 0.5 + landing + limits;
         1.01 * per_step * config.action_repeat as f32
     }
 }
@@ -59,11 +69,12 @@ impl Reward {
 /// is summed too.
 impl std::ops::AddAssign for Reward {
     fn add_assign(&mut self, step: Reward) {
-        let Reward { position, upright, tilt_rate, base_impact } = step;
+        let Reward { position, upright, tilt_rate, base_impact, joint_limit } = step;
         self.position += position;
         self.upright += upright;
         self.tilt_rate += tilt_rate;
         self.base_impact += base_impact;
+        self.joint_limit += joint_limit;
     }
 }
 
@@ -281,6 +292,7 @@ impl Crawler {
                 upright: upright_reward(self.base_rotation()),
                 tilt_rate: self.tilt_rate_reward(),
                 base_impact: self.base_impact_reward(),
+                joint_limit: self.joint_limit_reward(),
             };
             if self.track_tilt() {
                 outcome.terminated = true;
@@ -438,6 +450,22 @@ impl Crawler {
         let impulse = self.config.dt * (self.base_force - self.config.base_impact_threshold).max(0.0);
         self.episode.base_impact_impulse += impulse;
         -(self.config.base_impact_penalty * impulse).min(MAX_BASE_IMPACT_CHARGE)
+    }
+
+    /// This physics step's penalty on the joints' excursions past their limits (see
+    /// [`Reward::joint_limit`]).
+    fn joint_limit_reward(&self) -> f32 {
+        let weight = self.config.joint_limit_penalty;
+        if weight == 0.0 {
+            return 0.0;
+        }
+        let overshoot: f32 = self
+            .joint_angles()
+            .into_iter()
+            .zip([JOINT1_RANGE, JOINT2_RANGE])
+            .map(|(angle, [low, high])| (low - angle).max(angle - high).max(0.0))
+            .sum();
+        -(weight * self.config.dt * overshoot).min(MAX_JOINT_LIMIT_CHARGE)
     }
 
     /// The total normal force on the base's contacts in the last physics step, in N.

@@ -204,6 +204,7 @@ fn write_episode_metrics(metrics: &mut MetricsWriter, shared: &Shared, train_sec
             ("return_upright", f64::from(e.return_upright)),
             ("return_tilt_rate", f64::from(e.return_tilt_rate)),
             ("return_base_impact", f64::from(e.return_base_impact)),
+            ("return_joint_limit", f64::from(e.return_joint_limit)),
             ("speed", f64::from(e.speed)),
             ("flips", f64::from(e.flips)),
         ];

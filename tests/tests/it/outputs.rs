@@ -60,6 +60,7 @@ fn a_run_writes_metrics_that_plot_and_render_turn_into_pictures() {
         "episode/return_upright",
         "episode/return_tilt_rate",
         "episode/return_base_impact",
+        "episode/return_joint_limit",
         "episode/speed",
         "train/loss",
         "train/mean_q",
@@ -525,6 +526,21 @@ fn mujoco_cross_check_agrees_on_layout_and_policy_and_runs_an_episode() {
     let report = mujoco_check(&["eval", dir.path().to_str().unwrap(), "--episodes", "1", "--seconds", "0.1"], "");
     let report: serde_json::Value = serde_json::from_str(&report).unwrap();
     assert!(report["summary"]["mean_speed"].as_f64().is_some_and(f64::is_finite), "{report}");
+
+    // `scan` plays every checkpoint of a run's directory there, one JSON line each, in
+    // training order: here a second, later checkpoint beside the first.
+    let (config, run) = untrained_checkpoint("configs/default.toml", &[]);
+    let dqn = Dqn::new(config.network_spec(), config.dqn.clone());
+    let later = Progress { updates: 5, ..Progress::default() };
+    checkpoint::save(run.path(), &dqn, "untrained", &later, &serde_json::to_value(&config).unwrap(), None, 2).unwrap();
+    let scanned = mujoco_check(&["scan", run.path().to_str().unwrap(), "--episodes", "1", "--seconds", "0.1"], "");
+    let rows: Vec<serde_json::Value> = scanned.lines().map(|line| serde_json::from_str(line).unwrap()).collect();
+    let updates: Vec<u64> = rows.iter().map(|row| row["updates"].as_u64().unwrap()).collect();
+    assert_eq!(updates, [0, 5], "{scanned}");
+    for row in &rows {
+        assert!(row["mean_speed"].as_f64().is_some_and(f64::is_finite), "{row}");
+        assert!(row["flips"].as_u64().is_some(), "{row}");
+    }
 }
 
 /// The sim-to-sim state replay (issue 18): from states along MuJoCo's own trajectory of the
@@ -568,6 +584,11 @@ fn mujoco_state_replay_lands_single_steps_near_the_study_model() {
         let error = one_step[measure]["mean_abs"].as_f64().unwrap();
         assert!(error < 1.0, "{measure}: one step lands {error} rad/s from MuJoCo on average: {faithful}");
     }
+    // From the same states the base gets about as far here as there in 5 steps (measured:
+    // 1.03; the lead grows to 1.11 over 50 steps of the regression gait, EXPERIMENTS.md,
+    // "Session 35"); a progress read from the wrong coordinate or state would leave this band.
+    let progress = faithful["drift"]["5"]["progress_ratio"].as_f64().unwrap();
+    assert!((0.9..1.15).contains(&progress), "base progress over 5 steps, here / there: {progress}");
     // The base's contact force, what the landing penalty charges, from the same states under
     // the same torques. Over the 5-step horizon the normal impulse here is about 0.7 of
     // MuJoCo's (rapier spreads a landing over more steps; EXPERIMENTS.md, "Session 18"), and a

@@ -52,6 +52,7 @@ struct Episode {
     return_upright: f32,
     return_tilt_rate: f32,
     return_base_impact: f32,
+    return_joint_limit: f32,
     /// The base's contact force above `env.base_impact_threshold`, integrated (N·s).
     base_impact_impulse: f32,
     flips: u32,
@@ -105,6 +106,7 @@ fn main() -> anyhow::Result<()> {
             return_upright: summary.reward.upright,
             return_tilt_rate: summary.reward.tilt_rate,
             return_base_impact: summary.reward.base_impact,
+            return_joint_limit: summary.reward.joint_limit,
             base_impact_impulse: summary.base_impact_impulse,
             flips: summary.flips,
         });
