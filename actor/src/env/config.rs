@@ -107,8 +107,8 @@ pub struct EnvConfig {
     /// how far each is past its limit in rad (legged_gym's `dof_pos_limits` term), at most 0.5
     /// in magnitude: a second spent 0.01 rad past a limit costs 0.01·w. The joint limits are
     /// soft on the study's model, and from states past a limit this engine moves the base
-    /// further than MuJoCo does; trained gaits come to lean on them more and more, and carry
-    /// over worse as they do (EXPERIMENTS.md, "Session 35").
+    /// further than MuJoCo does; a gait that leans on them carries over worse (EXPERIMENTS.md,
+    /// "Session 35").
     pub joint_limit_penalty: f32,
     /// Weight w of a penalty on hard landings of the base (0: the study's reward, none). Each
     /// physics step adds −w·dt·max(0, F − `base_impact_threshold`), F being the total normal
