@@ -123,11 +123,10 @@ class Crawler:
             self.flips += 1
         self.flipped = flipped
         q1, q2 = self.data.qpos[7], self.data.qpos[8]
-        beyond = max(JOINT1_RANGE[0] - q1, q1 - JOINT1_RANGE[1], JOINT2_RANGE[0] - q2, q2 - JOINT2_RANGE[1], 0.0)
-        self.overshoot = max(self.overshoot, beyond)
+        past = (max(JOINT1_RANGE[0] - q1, q1 - JOINT1_RANGE[1], 0.0), max(JOINT2_RANGE[0] - q2, q2 - JOINT2_RANGE[1], 0.0))
+        self.overshoot = max(self.overshoot, *past)
         # What env.joint_limit_penalty charges: both joints' excursions, summed.
-        both = (max(JOINT1_RANGE[0] - q1, q1 - JOINT1_RANGE[1], 0.0)
-                + max(JOINT2_RANGE[0] - q2, q2 - JOINT2_RANGE[1], 0.0))
+        both = past[0] + past[1]
         self.steps += 1
         self.overshoot_sum += both
         self.steps_past_limit += both > 0.0
@@ -215,12 +214,17 @@ class PolicyInput:
         return self.values
 
 
+def step_checkpoints(path: Path) -> list[Path]:
+    """A run's step-* checkpoints in training order."""
+    return sorted(
+        (p for p in path.glob("step-*") if (p / "meta.json").exists()), key=lambda p: int(p.name.split("-")[1])
+    )
+
+
 def newest_checkpoint(path: Path) -> Path:
     if (path / "meta.json").exists():
         return path
-    steps = sorted(
-        (p for p in path.glob("step-*") if (p / "meta.json").exists()), key=lambda p: int(p.name.split("-")[1])
-    )
+    steps = step_checkpoints(path)
     if not steps:
         sys.exit(f"error: no checkpoint in {path}; point at a run's checkpoints directory or a step-* directory")
     return steps[-1]
@@ -340,10 +344,7 @@ def evaluate(args) -> None:
 def scanned_checkpoints(path: Path, every: int) -> list[Path]:
     """A run's checkpoints in training order (every `every`-th step-* directory), then its
     `average` and `best` where the run kept them."""
-    steps = sorted(
-        (p for p in path.glob("step-*") if (p / "meta.json").exists()), key=lambda p: int(p.name.split("-")[1])
-    )
-    chosen = steps[::-1][::every][::-1]  # counted back from the newest, so the newest is in
+    chosen = step_checkpoints(path)[::-1][::every][::-1]  # counted back from the newest, so the newest is in
     chosen += [path / name for name in ("average", "best") if (path / name / "meta.json").exists()]
     if not chosen:
         sys.exit(f"error: no checkpoint in {path}; point at a run's checkpoints directory")
@@ -358,8 +359,7 @@ def scan(args) -> None:
         sys.exit("error: --episodes and --every must be at least 1")
     rows = []
     for checkpoint in scanned_checkpoints(Path(args.checkpoints), args.every):
-        meta = json.loads((checkpoint / "meta.json").read_text())
-        policy = Mlp(load_file(str(checkpoint / "weights.safetensors")), meta["network"])
+        _, meta, policy = load_policy(checkpoint)
         summary = play(checkpoint, meta, policy, args.episodes, args.seconds, args.seed)["summary"]
         row = {"checkpoint": str(checkpoint), "updates": meta.get("progress", {}).get("updates"), **summary}
         rows.append(row)
