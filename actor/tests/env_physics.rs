@@ -656,25 +656,27 @@ fn a_generalized_state_reads_back_as_written_and_replays_a_trajectory() {
 #[test]
 fn a_stiffer_floor_stops_a_drop_more_sharply_and_zero_keeps_rapiers_floor() {
     use crawler_actor::env::{EpisodePhysics, Randomization};
-    // The crawler settles, is lifted 5 cm, held still and dropped with its motors off. Returns the peak
-    // normal force on the base, the deepest its bottom sinks below the floor (m), and the
-    // floor stiffness the episode drew.
+    // The crawler settles on rapier's own floor and is lifted 5 cm, held still; that one pose
+    // is dropped onto each floor with the motors off (the same drop: on each floor the arm
+    // would settle into a pose of its own). Returns the peak normal force on the base, the
+    // deepest it sinks below where it rested (m), and the floor stiffness the episode drew.
+    let mut settled = Crawler::new(endless(), 0);
+    for _ in 0..500 {
+        settled.step_torques([0.0, 0.0]);
+    }
+    let resting = settled.generalized_state();
+    let mut lifted = resting;
+    lifted.qpos[2] += 0.05;
+    lifted.qvel = [0.0; 8];
     let drop = |hz: [f32; 2]| {
         let randomization = Randomization { floor_contact_hz: hz, ..Randomization::default() };
         let mut crawler = Crawler::new(EnvConfig { randomization, ..endless() }, 0);
-        for _ in 0..500 {
-            crawler.step_torques([0.0, 0.0]);
-        }
-        let mut lifted = crawler.generalized_state();
-        let resting_z = lifted.qpos[2];
-        lifted.qpos[2] += 0.05;
-        lifted.qvel = [0.0; 8];
         crawler.set_generalized_state(&lifted).expect("a lifted resting state is valid");
         let (mut peak, mut deepest) = (0.0_f32, 0.0_f32);
         for _ in 0..300 {
             crawler.step_torques([0.0, 0.0]);
             peak = peak.max(crawler.base_contact_force());
-            deepest = deepest.max(resting_z - crawler.generalized_state().qpos[2]);
+            deepest = deepest.max(resting.qpos[2] - crawler.generalized_state().qpos[2]);
         }
         (peak, deepest, crawler.episode_physics().floor_contact_hz)
     };

@@ -80,8 +80,9 @@ pub struct EnvConfig {
     pub start_joint2_deg: [f32; 2],
     /// Joint limits: 0 makes them rigid (rapier's limit constraints). A positive value makes
     /// them soft as MuJoCo's are, with this time constant (seconds) in MuJoCo's own
-    /// soft-constraint formula (`Crawler::update_soft_limits`); 0.02 s is MuJoCo's default
-    /// `solreflimit`, which the study's model keeps. Rigid limits are what let open-loop gaits
+    /// soft-constraint formula, unilateral as MuJoCo's (`Crawler::soft_limit_targets`,
+    /// `Crawler::step_with_soft_limits`); 0.02 s is MuJoCo's default `solreflimit`, which the
+    /// study's model keeps. Rigid limits are what let open-loop gaits
     /// and learned policies crawl here while they tumble on the study's model.
     pub joint_limit_timeconst: f32,
     /// An episode terminates once the base tilts further than this from upright, in degrees

@@ -333,9 +333,8 @@ impl Crawler {
         // The shoulder's damping (the MJCF's base–link 1 contact) acts beside its motor.
         let rates = self.joint_rates();
         let torques = [torques[0] * strength[0] - SHOULDER_DAMPING * rates[0], torques[1] * strength[1]];
-        if self.physics.joint_limit_timeconst > 0.0 {
-            self.update_soft_limits(torques, rates);
-        }
+        let soft_limits =
+            if self.physics.joint_limit_timeconst > 0.0 { self.soft_limit_targets(rates) } else { [None; 2] };
         let bodies = &mut self.world.bodies;
         let axis1 = bodies[self.handles.base].rotation() * Vector::Y;
         let axis2 = bodies[self.handles.link1].rotation() * Vector::Y;
@@ -350,12 +349,57 @@ impl Crawler {
             body.add_torque(torque, true);
         }
         self.push_if_due();
-        self.world.step();
+        self.step_with_soft_limits(soft_limits);
         self.episode.physics_steps += 1;
         self.read_touch_sensors();
         if let Some(frames) = &mut self.recording {
             let frame = pose_frame(&self.world, &self.handles, self.episode.physics_steps as f32 * self.config.dt);
             frames.push(frame);
+        }
+    }
+
+    /// Steps the world with the soft limits of the joints past one, keeping them unilateral
+    /// as MuJoCo's are: a limit acts only where the joint, left free, would not already
+    /// return into range at least as fast as the limit's reference drives it (MuJoCo's
+    /// `a₀ < a_ref`). The step is first taken from a copy of the world with every limit off;
+    /// a limit whose joint ends that step slower than its target rate is engaged and the step
+    /// taken again from the copy. So the free acceleration is rapier's own, with gravity,
+    /// contacts, the free base and the other joint, rather than an estimate (the estimate
+    /// from the motor torques alone, used until session 36, left 12 % of the shoulder's
+    /// engaged steps pulling the joint towards its limit). Steps with no joint past a limit
+    /// pay for neither the copy nor the second step.
+    fn step_with_soft_limits(&mut self, limits: [Option<SoftLimitTarget>; 2]) {
+        if limits == [None; 2] {
+            self.world.step();
+            return;
+        }
+        // The copy keeps the motors as the last step left them, and with them the impulse
+        // rapier warm-starts a limit from while it stays engaged.
+        let before = WorldSnapshot::take(&self.world);
+        self.set_soft_limits([None; 2]);
+        self.world.step();
+        let free_rates = self.joint_rates();
+        let active = [0, 1].map(|index| {
+            limits[index].filter(|limit| limit.inward * free_rates[index] < limit.inward * limit.target_rate)
+        });
+        if active == [None; 2] {
+            return;
+        }
+        before.restore_into(&mut self.world);
+        self.set_soft_limits(active);
+        self.world.step();
+    }
+
+    /// Engages each joint's soft limit as `limits` says and releases the others.
+    fn set_soft_limits(&mut self, limits: [Option<SoftLimitTarget>; 2]) {
+        for (limit, joint_handle) in limits.into_iter().zip(self.handles.joints) {
+            let Some(joint) = self.world.impulse_joints.get_mut(joint_handle, false) else { continue };
+            match limit {
+                Some(limit) => {
+                    joint.data.set_motor(JointAxis::AngX, 0.0, limit.target_rate, 0.0, limit.compliance_damping);
+                }
+                None => release_soft_limit(&mut joint.data),
+            }
         }
     }
 
@@ -399,18 +443,20 @@ impl Crawler {
     /// rapier solves the same equation: a velocity motor on the hinge targeting `v + dt·a_ref`
     /// whose compliance is MuJoCo's regulariser, `(1 − d)/d · A` (an acceleration-based motor
     /// with damping `d/((1 − d)·dt)`), gives the impulse `d·dt·(a_ref − a₀)/A`, with A and a₀
-    /// (gravity, contacts, the other joint) found by rapier's solver as MuJoCo's are. Only the
-    /// on/off decision estimates a₀, from the motor torques alone with the base held
-    /// ([`arm_accelerations`]).
-    fn update_soft_limits(&mut self, torques: [f32; 2], rates: [f32; 2]) {
+    /// (gravity, contacts, the other joint, the free base) found by rapier's solver as
+    /// MuJoCo's are. Whether the limit acts at all is decided by
+    /// [`Crawler::step_with_soft_limits`].
+    ///
+    /// Returns each joint's limit where the joint is past one, `None` where it is within
+    /// its range.
+    fn soft_limit_targets(&self, rates: [f32; 2]) -> [Option<SoftLimitTarget>; 2] {
         let timeconst = self.physics.joint_limit_timeconst;
         let stiffness = 1.0 / (LIMIT_IMPEDANCE_MAX * timeconst).powi(2);
         let damping = 2.0 / (LIMIT_IMPEDANCE_MAX * timeconst);
         let dt = self.config.dt;
         let angles = self.joint_angles();
-        let free_accelerations = arm_accelerations(angles[1], torques);
-        for (index, [low, high]) in [JOINT1_RANGE, JOINT2_RANGE].into_iter().enumerate() {
-            let (angle, rate) = (angles[index], rates[index]);
+        [0, 1].map(|index| {
+            let ([low, high], angle, rate) = ([JOINT1_RANGE, JOINT2_RANGE][index], angles[index], rates[index]);
             // Distance into the range from the nearer violated limit (negative past it), and
             // the direction into the range.
             let (distance, inward) = if angle < low {
@@ -418,19 +464,16 @@ impl Crawler {
             } else if angle > high {
                 (high - angle, -1.0)
             } else {
-                (0.0, 0.0)
+                return None;
             };
-            let Some(joint) = self.world.impulse_joints.get_mut(self.handles.joints[index], false) else { continue };
             let impedance = limit_impedance(distance.abs());
             let reference = -damping * inward * rate - stiffness * impedance * distance;
-            if inward == 0.0 || reference <= inward * free_accelerations[index] {
-                joint.data.motor_axes.remove(JointAxesMask::ANG_X);
-                continue;
-            }
-            let target_rate = rate + dt * inward * reference;
-            let compliance_damping = impedance / ((1.0 - impedance) * dt);
-            joint.data.set_motor(JointAxis::AngX, 0.0, target_rate, 0.0, compliance_damping);
-        }
+            Some(SoftLimitTarget {
+                inward,
+                target_rate: rate + dt * inward * reference,
+                compliance_damping: impedance / ((1.0 - impedance) * dt),
+            })
+        })
     }
 
     /// This physics step's penalty on the base's rocking (see [`Reward::tilt_rate`]).
@@ -729,6 +772,66 @@ const LIMIT_IMPEDANCE_MIN: f32 = 0.9;
 const LIMIT_IMPEDANCE_MAX: f32 = 0.95;
 const LIMIT_IMPEDANCE_WIDTH: f32 = 0.001;
 
+/// Turns a soft limit's motor off and forgets its impulse: rapier warm-starts a motor from
+/// its last impulse, and a limit engaged again later must start from none, as MuJoCo's
+/// constraint does when it becomes active.
+fn release_soft_limit(joint: &mut GenericJoint) {
+    joint.motor_axes.remove(JointAxesMask::ANG_X);
+    joint.motors[JointAxis::AngX as usize].impulse = 0.0;
+}
+
+/// One step's soft limit on a joint past it ([`Crawler::soft_limit_targets`]).
+#[derive(Debug, Clone, Copy, PartialEq)]
+struct SoftLimitTarget {
+    /// The direction into the joint's range: +1 past the lower limit, −1 past the upper.
+    inward: f32,
+    /// The joint rate the limit drives towards this step, `v + dt·a_ref`, rad/s.
+    target_rate: f32,
+    /// The motor damping that makes its compliance MuJoCo's regulariser.
+    compliance_damping: f32,
+}
+
+/// The parts of a world one step changes, copied so that a step can be taken again
+/// ([`Crawler::step_with_soft_limits`]). The island manager is left out: no body may sleep,
+/// so a step leaves it as it was. The joints are written back one by one into the live set
+/// rather than replaced by the copy, because rapier's solver caches its joint assembly
+/// against the set's edit counter, which a replaced set would wind back onto a value the
+/// cache has already seen (and the solver would keep the joints' motors of the discarded
+/// step).
+struct WorldSnapshot {
+    bodies: RigidBodySet,
+    colliders: ColliderSet,
+    impulse_joints: ImpulseJointSet,
+    narrow_phase: NarrowPhase,
+    broad_phase: BroadPhaseBvh,
+}
+
+impl WorldSnapshot {
+    fn take(world: &PhysicsWorld) -> Self {
+        Self {
+            bodies: world.bodies.clone(),
+            colliders: world.colliders.clone(),
+            impulse_joints: world.impulse_joints.clone(),
+            narrow_phase: world.narrow_phase.clone(),
+            broad_phase: world.broad_phase.clone(),
+        }
+    }
+
+    /// Puts the copy back, keeping it for another try.
+    fn restore_into(&self, world: &mut PhysicsWorld) {
+        world.bodies.clone_from(&self.bodies);
+        world.colliders.clone_from(&self.colliders);
+        world.narrow_phase.clone_from(&self.narrow_phase);
+        world.broad_phase.clone_from(&self.broad_phase);
+        for (handle, saved) in self.impulse_joints.iter() {
+            if let Some(live) = world.impulse_joints.get_mut(handle, false) {
+                live.data = saved.data;
+                live.impulses = saved.impulses;
+            }
+        }
+    }
+}
+
 /// MuJoCo's impedance at a violation `depth` ≥ 0 for the limits' `solimp`: a smooth step
 /// (midpoint 0.5, power 2) from the minimum to the maximum over the width.
 fn limit_impedance(depth: f32) -> f32 {
@@ -738,59 +841,6 @@ fn limit_impedance(depth: f32) -> f32 {
     }
     let y = if x <= 0.5 { 2.0 * x * x } else { 1.0 - 2.0 * (1.0 - x) * (1.0 - x) };
     LIMIT_IMPEDANCE_MIN + y * (LIMIT_IMPEDANCE_MAX - LIMIT_IMPEDANCE_MIN)
-}
-
-/// Link 2 with its tip: total mass, and its centre of mass's distance from the knee.
-fn link2_mass_and_centre() -> (f32, f32) {
-    let mass = LINK2_MASS + TIP_MASS;
-    (mass, (LINK2_MASS * LINK2_LENGTH / 2.0 + TIP_MASS * LINK2_LENGTH) / mass)
-}
-
-/// The joint accelerations the motor torques alone give the arm with the base held:
-/// M(q2)⁻¹·τ, with M the arm's 2×2 joint-space mass matrix (diagonal from
-/// [`joint_inertias`], coupling from link 2's centre of mass seen from the shoulder).
-fn arm_accelerations(q2: f32, torques: [f32; 2]) -> [f32; 2] {
-    let [shoulder, knee] = joint_inertias(q2);
-    let (link2_mass, link2_com) = link2_mass_and_centre();
-    let coupling = knee + link2_mass * LINK1_LENGTH * link2_com * q2.cos();
-    let determinant = shoulder * knee - coupling * coupling;
-    [
-        (knee * torques[0] - coupling * torques[1]) / determinant,
-        (shoulder * torques[1] - coupling * torques[0]) / determinant,
-    ]
-}
-
-/// Each hinge's inertia about its own axis with the parent held still: link 1 and link 2
-/// about the shoulder (which depends on the knee angle `q2`), link 2 about the knee. The
-/// diagonal of MuJoCo's joint-space mass matrix for the two arm joints of a fixed base.
-fn joint_inertias(q2: f32) -> [f32; 2] {
-    // Capsule of length l and radius r about a transverse axis through its centre, as a
-    // cylinder plus two hemispheres (MuJoCo's and rapier's model of a capsule).
-    let capsule = |mass: f32, length: f32| {
-        let (r, half) = (LINK_RADIUS, length / 2.0);
-        let cylinder_volume = std::f32::consts::PI * r * r * length;
-        let spheres_volume = 4.0 / 3.0 * std::f32::consts::PI * r * r * r;
-        let density = mass / (cylinder_volume + spheres_volume);
-        let (cylinder_mass, spheres_mass) = (density * cylinder_volume, density * spheres_volume);
-        let cylinder = cylinder_mass * (3.0 * r * r + length * length) / 12.0;
-        // Each hemisphere: 83/320·m·r² about its own centre of mass, which sits 3r/8 beyond
-        // the cylinder's end.
-        let spheres = spheres_mass * (83.0 / 320.0 * r * r + (half + 0.375 * r).powi(2));
-        cylinder + spheres
-    };
-    let tip = TIP_MASS * (2.0 * TIP_HALF_EXTENT).powi(2) / 6.0;
-    // Link 2 (capsule centred at l2/2, tip at l2) about the knee.
-    let (link2_mass, link2_com) = link2_mass_and_centre();
-    let link2_about_com = capsule(LINK2_MASS, LINK2_LENGTH)
-        + LINK2_MASS * (LINK2_LENGTH / 2.0 - link2_com).powi(2)
-        + tip
-        + TIP_MASS * (LINK2_LENGTH - link2_com).powi(2);
-    let knee = link2_about_com + link2_mass * link2_com * link2_com;
-    // Link 1 about the shoulder, plus link 2 whose centre is at distance d from it.
-    let link1 = capsule(LINK1_MASS, LINK1_LENGTH) + LINK1_MASS * (LINK1_LENGTH / 2.0).powi(2);
-    let d_squared = LINK1_LENGTH * LINK1_LENGTH + link2_com * link2_com + 2.0 * LINK1_LENGTH * link2_com * q2.cos();
-    let shoulder = link1 + link2_about_com + link2_mass * d_squared;
-    [shoulder, knee]
 }
 
 /// Draws the study's start pose: joint 1 uniform in its start range, joint 2 likewise, each
@@ -954,7 +1004,7 @@ fn build_world(config: &EnvConfig, physics: &EpisodePhysics, q1: f32, q2: f32) -
     // Jointed bodies never touch each other (MuJoCo excludes parent–child pairs); the base
     // still collides with link 2 and the tip, which share no joint with it.
     // Rigid limits are rapier's limit constraints; soft ones are motors set at each step
-    // (`Crawler::update_soft_limits`).
+    // (`Crawler::step_with_soft_limits`).
     let hinge = |anchor: Vector, range: [f32; 2]| {
         let joint = RevoluteJointBuilder::new(Vector::Y)
             .local_anchor1(anchor)
@@ -1014,32 +1064,52 @@ mod tests {
         assert!((hinge_angle(&child, &parent) + 0.7).abs() < 1e-5);
     }
 
-    #[test]
-    fn joint_inertias_match_mujocos_mass_matrix() {
-        // MuJoCo 4.0's qM diagonal for joints 1 and 2 of crawling_robot.xml with the base
-        // fixed: link 1's inertia about its centre is 7.646e-4, link 2's (with the tip)
-        // 1.2645e-3 about a centre 0.18 m from the knee.
-        let [shoulder, knee] = joint_inertias(0.0);
-        let expected_knee = 1.2645e-3 + 0.2 * 0.18 * 0.18;
-        assert!((knee - expected_knee).abs() < 1e-5, "{knee} vs {expected_knee}");
-        let expected_shoulder = 7.6456e-4 + 0.2 * 0.1 * 0.1 + 1.2645e-3 + 0.2 * 0.38 * 0.38;
-        assert!((shoulder - expected_shoulder).abs() < 1e-5, "{shoulder} vs {expected_shoulder}");
-        let [folded, _] = joint_inertias(std::f32::consts::FRAC_PI_2);
-        assert!(folded < shoulder, "folding the knee brings link 2 closer to the shoulder");
+    /// A crawler whose base rests on the floor with the joints at `angles` (rad) and rates
+    /// `rates` (rad/s), and no episode end.
+    fn crawler_posed(angles: [f32; 2], rates: [f32; 2]) -> Crawler {
+        let config = EnvConfig {
+            action_repeat: 1,
+            min_episode_steps: u32::MAX / 2,
+            max_episode_steps: u32::MAX / 2 + 1,
+            ..EnvConfig::default()
+        };
+        let mut crawler = Crawler::new(config, 5);
+        let mut state = crawler.generalized_state();
+        [state.qpos[7], state.qpos[8]] = angles;
+        state.qvel = [0.0; 8];
+        [state.qvel[6], state.qvel[7]] = rates;
+        crawler.set_generalized_state(&state).expect("a finite state");
+        crawler
     }
 
     #[test]
-    fn arm_accelerations_match_mujocos_joint_space_mass_matrix() {
-        // MuJoCo 4.0's mass matrix of crawling_robot.xml at q2 = 0.2: its joint block
-        // (the arm's with the base held) is [[0.032622, 0.014801], [0.014801, 0.007745]].
-        let (m11, m12, m22) = (0.032622f32, 0.014801f32, 0.007745f32);
-        let det = m11 * m22 - m12 * m12;
-        for torques in [[1.0f32, 0.0], [0.0, 1.0], [-0.5, 1.0]] {
-            let expected = [(m22 * torques[0] - m12 * torques[1]) / det, (m11 * torques[1] - m12 * torques[0]) / det];
-            let ours = arm_accelerations(0.2, torques);
-            for (a, b) in ours.iter().zip(&expected) {
-                assert!((a - b).abs() <= 0.01 * b.abs().max(1.0), "{torques:?}: {ours:?} vs {expected:?}");
-            }
+    fn a_soft_limit_brakes_a_joint_going_out_and_lets_a_returning_one_go() {
+        // MuJoCo's limit force is unilateral: it stops a joint moving past its limit, and it
+        // is zero for a joint that returns into range faster than the limit's reference
+        // would drive it (here a_ref ≈ −800 rad/s² against a₀ of a few). A two-sided limit
+        // would brake the returning joint by about dt·d·|a_ref| ≈ 1.5 rad/s in one step.
+        let shoulder_rate_after_one_step = |rate: f32| {
+            // Just past the shoulder's lower limit (the arm raised).
+            let mut crawler = crawler_posed([JOINT1_RANGE[0] - 0.01, 0.5], [rate, 0.0]);
+            crawler.step_torques([0.0, 0.0]);
+            crawler.joint_rates()[0]
+        };
+        let returning = shoulder_rate_after_one_step(8.0);
+        assert!((returning - 8.0).abs() < 0.3, "a joint returning at 8 rad/s came out at {returning}");
+        let leaving = shoulder_rate_after_one_step(-8.0);
+        assert!(leaving > -8.0 + 1.0, "a joint leaving its range at 8 rad/s kept {leaving}");
+    }
+
+    #[test]
+    fn a_soft_limit_holds_a_joint_that_gravity_pulls_past_it() {
+        // Link 2 hangs past the knee's lower limit with the motors off: gravity drives it
+        // further out, so the limit stays engaged and pushes it back in at every step (the
+        // free step alone would let it fall at about 0.07 rad/s per step).
+        let mut crawler = crawler_posed([-30.0 * DEG, JOINT2_RANGE[0] - 0.01], [0.0; 2]);
+        for step in 0..10 {
+            crawler.step_torques([0.0, 0.0]);
+            let knee_rate = crawler.joint_rates()[1];
+            assert!(knee_rate > 0.0, "step {step}: the knee moves out at {knee_rate} rad/s");
         }
     }
 

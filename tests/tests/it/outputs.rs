@@ -547,8 +547,8 @@ fn mujoco_cross_check_agrees_on_layout_and_policy_and_runs_an_episode() {
 /// gait that tumbles the study's model, this env is set to the same state and plays the same
 /// torques. One step later its joint rates must be close to MuJoCo's, above all while a joint
 /// is past a limit, where the gaits spend half their time. MuJoCo's limit formula
-/// (`Crawler::update_soft_limits`) lands within about 0.5 rad/s there; the spring-damper
-/// limits this port had before landed 2.5 rad/s away, and rigid limits further still, which
+/// (`Crawler::soft_limit_targets`, `Crawler::step_with_soft_limits`) lands within about
+/// 0.5 rad/s there; the spring-damper limits this port had before landed 2.5 rad/s away, and rigid limits further still, which
 /// the second half checks so that the bound is known to bite. The third half checks contacts:
 /// MuJoCo makes one only once shapes touch, and so does this env by default
 /// (`env.contact_prediction = 0`); rapier's own speculative contacts (0.02 m) feel a landing a
