@@ -792,8 +792,10 @@ struct SoftLimitTarget {
 }
 
 /// The parts of a world one step changes, copied so that a step can be taken again
-/// ([`Crawler::step_with_soft_limits`]). The island manager is left out: no body may sleep,
-/// so a step leaves it as it was. The joints are written back one by one into the live set
+/// ([`Crawler::step_with_soft_limits`]). The island manager is part of it even though no
+/// body sleeps: it links every touching contact pair into an island, and a step that
+/// makes or breaks a contact changes those links (rapier's debug builds assert that they
+/// match the narrow phase). The joints are written back one by one into the live set
 /// rather than replaced by the copy, because rapier's solver caches its joint assembly
 /// against the set's edit counter, which a replaced set would wind back onto a value the
 /// cache has already seen (and the solver would keep the joints' motors of the discarded
@@ -804,6 +806,7 @@ struct WorldSnapshot {
     impulse_joints: ImpulseJointSet,
     narrow_phase: NarrowPhase,
     broad_phase: BroadPhaseBvh,
+    islands: IslandManager,
 }
 
 impl WorldSnapshot {
@@ -814,6 +817,7 @@ impl WorldSnapshot {
             impulse_joints: world.impulse_joints.clone(),
             narrow_phase: world.narrow_phase.clone(),
             broad_phase: world.broad_phase.clone(),
+            islands: world.islands.clone(),
         }
     }
 
@@ -823,6 +827,7 @@ impl WorldSnapshot {
         world.colliders.clone_from(&self.colliders);
         world.narrow_phase.clone_from(&self.narrow_phase);
         world.broad_phase.clone_from(&self.broad_phase);
+        world.islands.clone_from(&self.islands);
         for (handle, saved) in self.impulse_joints.iter() {
             if let Some(live) = world.impulse_joints.get_mut(handle, false) {
                 live.data = saved.data;
