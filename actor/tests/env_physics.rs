@@ -72,6 +72,29 @@ fn observation_is_forty_finite_values_in_the_documented_layout() {
 }
 
 #[test]
+fn a_crawler_left_with_the_motors_off_comes_to_rest() {
+    // The study's start pose settles with the knee just past its lower limit, held there by
+    // the soft limit against the arm's weight (MuJoCo rests at q = (0.092, −0.004) rad). A
+    // limit left engaged once the joint is back in range drove it on at its last target rate:
+    // both joints crept at 0.4–0.8 rad/s with zero torque for as long as the episode ran.
+    let mut crawler = Crawler::new(EnvConfig { action_repeat: 1, ..endless() }, 0);
+    crawler.reset_to([-22.5 * DEG, 11.25 * DEG]);
+    for _ in 0..1000 {
+        crawler.step_torques([0.0, 0.0]);
+    }
+    let settled = crawler.joint_angles();
+    for _ in 0..500 {
+        crawler.step_torques([0.0, 0.0]);
+    }
+    let (angles, rates) = (crawler.joint_angles(), crawler.joint_rates());
+    assert!(rates.iter().all(|rate| rate.abs() < 0.05), "joint rates at rest {rates:?}");
+    for (now, then) in angles.iter().zip(&settled) {
+        assert!((now - then).abs() < 0.01, "joints moved from {settled:?} to {angles:?} in 1 s at rest");
+    }
+    assert!(angles[1] > -0.02, "the knee rests near its limit, not far past it: {angles:?}");
+}
+
+#[test]
 fn zero_torque_keeps_the_base_still() {
     for seed in 0..4 {
         let mut crawler = Crawler::new(endless(), seed);
@@ -209,10 +232,12 @@ fn the_gait_that_tumbles_in_mujoco_tumbles_here_and_only_rigid_limits_forgive_it
 
 #[test]
 fn a_fall_past_max_tilt_terminates_the_episode_before_the_base_turns_over() {
-    // The tumbling gait from its start pose: with the default (180°) it runs on and turns the
-    // base over; with 60° the episode terminates first, the base not yet upside down.
-    let run = |max_tilt_deg: f32| {
-        let mut crawler = Crawler::new(EnvConfig { max_tilt_deg, ..endless() }, 0);
+    // The tumbling gait: with the default (180°) it runs on and turns the base over; with 60°
+    // the episode terminates first, the base not yet upside down. Not every start tumbles
+    // within 20 s (the gait bank: some of its starts stay upright here), so the first of a
+    // few seeds whose start does is the one checked.
+    let run = |max_tilt_deg: f32, seed: u64| {
+        let mut crawler = Crawler::new(EnvConfig { max_tilt_deg, ..endless() }, seed);
         let dt = crawler.config().dt;
         for step in 0..10_000_u32 {
             let outcome = crawler.step_torques(SquareWaveGait::TUMBLES_IN_MUJOCO.torques(step as f32 * dt));
@@ -222,9 +247,14 @@ fn a_fall_past_max_tilt_terminates_the_episode_before_the_base_turns_over() {
         }
         (None, crawler.episode_summary(None))
     };
-    let (outcome, summary) = run(180.0);
-    assert!(outcome.is_none() && summary.flips > 0, "180° never ends an episode: {summary:?}");
-    let (outcome, summary) = run(60.0);
+    let seed = (0..5)
+        .find(|&seed| {
+            let (outcome, summary) = run(180.0, seed);
+            assert!(outcome.is_none(), "180° never ends an episode: {summary:?}");
+            summary.flips > 0
+        })
+        .expect("the tumbling gait turns the base over from one of five starts");
+    let (outcome, summary) = run(60.0, seed);
     let outcome = outcome.expect("a 60° limit ends the tumbling episode");
     assert!(outcome.terminated && !outcome.truncated, "{outcome:?}");
     assert_eq!(summary.flips, 0, "terminated before turning over: {summary:?}");

@@ -53,6 +53,7 @@ import numpy as np
 from safetensors.numpy import load_file
 
 MODEL = Path(__file__).with_name("crawling_robot.xml")
+SHOULDER_PAIR = '<pair geom1="base_geom" geom2="link1_geom" condim="3"/>'
 DEG = math.pi / 180.0
 JOINT1_RANGE = (-80.0 * DEG, 80.0 * DEG)
 JOINT2_RANGE = (0.0, 150.0 * DEG)
@@ -88,8 +89,14 @@ def start_lift(q1: float, q2: float) -> float:
 class Crawler:
     """The study's model with a clean reset: base at rest, joints at (q1, q2), zero velocity."""
 
-    def __init__(self) -> None:
-        self.model = mujoco.MjModel.from_xml_path(str(MODEL))
+    def __init__(self, without_shoulder_pair: bool = False) -> None:
+        if without_shoulder_pair:
+            # The MJCF's base–link 1 contact pair left out: what it does to the shoulder is
+            # the difference (`pair`).
+            xml = MODEL.read_text().replace(SHOULDER_PAIR, "")
+            self.model = mujoco.MjModel.from_xml_string(xml)
+        else:
+            self.model = mujoco.MjModel.from_xml_path(str(MODEL))
         self.data = mujoco.MjData(self.model)
         self.dt = self.model.opt.timestep
         self.base_geom = mujoco.mj_name2id(self.model, mujoco.mjtObj.mjOBJ_GEOM, "base_geom")
@@ -709,6 +716,82 @@ def solvers(args) -> None:
         }))
 
 
+def airborne_states(count: int, seed: int) -> list:
+    """Random states of the crawler high in the air: poses over both joints' ranges, planar
+    velocities (the gaits' plane), and random torques."""
+    rng = np.random.default_rng(seed)
+    states = []
+    for _ in range(count):
+        q1, q2 = rng.uniform(-1.3, 1.3), rng.uniform(0.05, 2.5)
+        velocity = rng.normal(0.0, 8.0, 5) * [0.1, 0.1, 1.0, 1.0, 1.0]
+        states.append((q1, q2, velocity, rng.uniform(-1.0, 1.0, 2)))
+    return states
+
+
+def one_step(crawler: Crawler, state) -> tuple:
+    """qpos and qvel before, and qvel after, one step of `crawler` from an airborne `state`."""
+    q1, q2, velocity, torques = state
+    crawler.reset(q1, q2)
+    crawler.data.qpos[2] += 0.5
+    crawler.data.qvel[:] = 0.0
+    crawler.data.qvel[[0, 2, 4, 6, 7]] = velocity
+    mujoco.mj_forward(crawler.model, crawler.data)
+    qpos, qvel = crawler.data.qpos.copy(), crawler.data.qvel.copy()
+    crawler.step(torques)
+    return qpos, qvel, crawler.data.qvel.copy()
+
+
+def pair(args) -> None:
+    """What the MJCF's base–link 1 contact pair does to the shoulder in one step, fitted as a
+    soft constraint on its rate (`d·a_ref + (1 − d)·a₀`, `a_ref = −B·q̇1`, d = d0 + d1·cos q1),
+    and, with --rapier, how far this engine's one step lands from MuJoCo's on other states."""
+    with_pair, without_pair = Crawler(), Crawler(without_shoulder_pair=True)
+    features, effects = [], []
+    for state in airborne_states(args.states, args.seed):
+        _, before, after = one_step(with_pair, state)
+        _, _, free = one_step(without_pair, state)
+        free_change, cosine = free[6] - before[6], math.cos(state[0])
+        rate_dt = before[6] * with_pair.dt
+        features.append([free_change, free_change * cosine, rate_dt, rate_dt * cosine])
+        effects.append(after[6] - free[6])
+    features, effects = np.array(features), np.array(effects)
+    coefficients, *_ = np.linalg.lstsq(features, effects, rcond=None)
+    residual = effects - features @ coefficients
+    r_squared = 1.0 - float((residual**2).sum() / ((effects - effects.mean()) ** 2).sum())
+    d0, d1 = -coefficients[0], -coefficients[1]
+    # d·B = −(coefficients[2] + coefficients[3]·cos q1); B from the level link's values.
+    damping = float((coefficients[2] + coefficients[3]) / (coefficients[0] + coefficients[1]))
+    result = {"states": args.states, "d0": float(d0), "d1": float(d1), "B": damping, "r_squared": r_squared}
+    summary = f"MuJoCo's pair: d = {d0:.4f} + {d1:.4f}·cos q1, B = {damping:.1f} /s (R² = {r_squared:.4f}, {args.states} states)"
+    if args.rapier:
+        checked = airborne_states(args.states, args.seed + 1)
+        queries, theirs, free_ones = [], [], []
+        for state in checked:
+            qpos, qvel, after = one_step(with_pair, state)
+            free_ones.append(one_step(without_pair, state)[2])
+            theirs.append(after)
+            query = {"qpos": [float(v) for v in qpos], "qvel": [float(v) for v in qvel],
+                     "torques": [[float(t) for t in state[3]]]}
+            queries.append(json.dumps(query) + "\n")
+        reply = subprocess.run([args.rapier], input="".join(queries), capture_output=True, text=True)
+        if reply.returncode != 0:
+            sys.exit(f"error: {args.rapier} failed ({reply.returncode}): {reply.stderr.strip()}")
+        ours = [np.array(json.loads(line)["states"][0]["qvel"]) for line in reply.stdout.splitlines() if line.strip()]
+        if len(ours) != len(checked):
+            sys.exit(f"error: {args.rapier} answered {len(ours)} of {len(checked)} queries")
+        rates = [4, 6, 7]
+        error = np.mean([np.abs(o[rates] - t[rates]) for o, t in zip(ours, theirs)], axis=0)
+        unpaired = np.mean([np.abs(f[rates] - t[rates]) for f, t in zip(free_ones, theirs)], axis=0)
+        result["one_step_error"] = {"rapier": error.tolist(), "mujoco_without_the_pair": unpaired.tolist()}
+        summary += (
+            f"\none step from {len(checked)} other states, mean |Δ| pitch / q1 / q2 rate against MuJoCo with the"
+            f" pair: this engine {error[0]:.3f} / {error[1]:.3f} / {error[2]:.3f} rad/s, MuJoCo without it"
+            f" {unpaired[0]:.3f} / {unpaired[1]:.3f} / {unpaired[2]:.3f}"
+        )
+    print(json.dumps(result))
+    print(summary, file=sys.stderr)
+
+
 def gait_from_args(values) -> dict:
     """The square wave of a --gait PERIOD HIGH1 HIGH2 LOW1 LOW2 LAG argument."""
     period, high1, high2, low1, low2, lag = values
@@ -762,6 +845,11 @@ def main() -> None:
     replay_parser.add_argument("--lift", type=float, default=0.0, help="start this high in the air (m): no contacts")
     replay_parser.add_argument("overrides", nargs="*", help="env settings KEY=VALUE for this engine")
     replay_parser.set_defaults(run=replay)
+    pair_parser = commands.add_parser("pair", help="the base–link 1 contact pair's effect on the shoulder, fitted")
+    pair_parser.add_argument("--rapier", help="the state_replay example's binary: also this engine's one-step error")
+    pair_parser.add_argument("--states", type=int, default=400, help="random airborne states to fit on")
+    pair_parser.add_argument("--seed", type=int, default=0)
+    pair_parser.set_defaults(run=pair)
     solvers_parser = commands.add_parser("solvers", help="a square wave under each of MuJoCo's solvers: rolls")
     solvers_parser.add_argument(
         "--gait", type=float, nargs=6, default=[0.3, -1.0, 1.0, 0.0, -1.0, 0.0],

@@ -370,6 +370,11 @@ impl Crawler {
     /// pay for neither the copy nor the second step.
     fn step_with_soft_limits(&mut self, limits: [Option<SoftLimitTarget>; 2]) {
         if limits == [None; 2] {
+            // A limit engaged at the last step must not drive its joint on at that step's
+            // target rate now that the joint is back in range (until session 37 it did: a
+            // crawler left at rest with the knee just past its limit crept, both joints
+            // turning at a steady 0.4-0.8 rad/s under zero torque).
+            self.release_engaged_soft_limits();
             self.world.step();
             return;
         }
@@ -388,6 +393,22 @@ impl Crawler {
         before.restore_into(&mut self.world);
         self.set_soft_limits(active);
         self.world.step();
+    }
+
+    /// Releases whichever soft limit is still engaged. Joints are written only where one is,
+    /// so that steps far from the limits leave the joint set (and rapier's joint assembly,
+    /// cached against its edits) alone.
+    fn release_engaged_soft_limits(&mut self) {
+        for joint_handle in self.handles.joints {
+            let engaged = self
+                .world
+                .impulse_joints
+                .get(joint_handle)
+                .is_some_and(|joint| joint.data.motor_axes.contains(JointAxesMask::ANG_X));
+            if engaged && let Some(joint) = self.world.impulse_joints.get_mut(joint_handle, false) {
+                release_soft_limit(&mut joint.data);
+            }
+        }
     }
 
     /// Engages each joint's soft limit as `limits` says and releases the others.
