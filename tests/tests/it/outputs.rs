@@ -4,7 +4,7 @@
 #![allow(clippy::unwrap_used)]
 
 use std::collections::BTreeSet;
-use std::path::Path;
+use std::path::{Path, PathBuf};
 use std::process::{Command, Output};
 use std::time::Duration;
 
@@ -419,6 +419,19 @@ fn untrained_checkpoint(preset: &str, overrides: &[String]) -> (TrainConfig, tem
     (config, dir)
 }
 
+/// The state_replay example `cargo test --workspace` built beside this test binary, if there
+/// is one; otherwise scripts/mujoco-check builds it.
+fn built_state_replay() -> Option<PathBuf> {
+    let exe = std::env::current_exe().ok()?;
+    let example = exe.parent()?.parent()?.join("examples/state_replay");
+    example.exists().then_some(example)
+}
+
+/// The environment that points scripts/mujoco-check at `example`, where there is one.
+fn state_replay_env(example: &Option<PathBuf>) -> Vec<(&'static str, &Path)> {
+    example.iter().map(|path| ("CRAWLER_STATE_REPLAY", path.as_path())).collect()
+}
+
 /// `scripts/mujoco-check` with `args`, `stdin` piped in; its stdout.
 fn mujoco_check(args: &[&str], stdin: &str) -> String {
     mujoco_check_with(args, stdin, &[])
@@ -557,14 +570,8 @@ fn mujoco_cross_check_agrees_on_layout_and_policy_and_runs_an_episode() {
 #[test]
 #[ignore = "needs MuJoCo from PyPI; scripts/test runs it where `scripts/mujoco-check setup` succeeds"]
 fn mujoco_state_replay_lands_single_steps_near_the_study_model() {
-    // The state_replay example `cargo test --workspace` built beside this test binary, if
-    // there is one; otherwise scripts/mujoco-check builds it.
-    let exe = std::env::current_exe().unwrap();
-    let example = exe.parent().and_then(|deps| deps.parent()).map(|profile| profile.join("examples/state_replay"));
-    let envs: Vec<(&str, &Path)> = match &example {
-        Some(path) if path.exists() => vec![("CRAWLER_STATE_REPLAY", path.as_path())],
-        _ => Vec::new(),
-    };
+    let example = built_state_replay();
+    let envs = state_replay_env(&example);
     let replay = |overrides: &[&str]| -> serde_json::Value {
         let mut args = vec!["replay", "--seconds", "2", "--every", "4", "--horizon", "5"];
         args.extend_from_slice(overrides);
@@ -640,13 +647,9 @@ fn mujoco_state_replay_lands_single_steps_near_the_study_model() {
 /// fitted to the same steps reached 0.087).
 #[test]
 #[ignore = "needs MuJoCo from PyPI; scripts/test runs it where `scripts/mujoco-check setup` succeeds"]
-fn mujoco_shoulder_pair_is_a_soft_constraint_that_this_env_reproduces() {
-    let exe = std::env::current_exe().unwrap();
-    let example = exe.parent().and_then(|deps| deps.parent()).map(|profile| profile.join("examples/state_replay"));
-    let envs: Vec<(&str, &Path)> = match &example {
-        Some(path) if path.exists() => vec![("CRAWLER_STATE_REPLAY", path.as_path())],
-        _ => Vec::new(),
-    };
+fn mujoco_shoulder_pair_is_a_soft_constraint_this_env_approximates() {
+    let example = built_state_replay();
+    let envs = state_replay_env(&example);
     let report: serde_json::Value =
         serde_json::from_str(&mujoco_check_with(&["pair", "--states", "150"], "", &envs)).unwrap();
     let number = |key: &str| report[key].as_f64().unwrap_or_else(|| panic!("no {key}: {report}"));
