@@ -93,8 +93,10 @@ class Crawler:
         if without_shoulder_pair:
             # The MJCF's base–link 1 contact pair left out: what it does to the shoulder is
             # the difference (`pair`).
-            xml = MODEL.read_text().replace(SHOULDER_PAIR, "")
-            self.model = mujoco.MjModel.from_xml_string(xml)
+            xml = MODEL.read_text()
+            if SHOULDER_PAIR not in xml:
+                sys.exit(f"error: {MODEL} has no `{SHOULDER_PAIR}` to leave out; update SHOULDER_PAIR in check.py")
+            self.model = mujoco.MjModel.from_xml_string(xml.replace(SHOULDER_PAIR, ""))
         else:
             self.model = mujoco.MjModel.from_xml_path(str(MODEL))
         self.data = mujoco.MjData(self.model)
