@@ -5,7 +5,7 @@
 use crawler_proto as proto;
 use serde::{Deserialize, Serialize};
 
-use crate::env::{Direction, EnvConfig, Randomization};
+use crate::env::{Direction, EnvConfig, Randomization, ShoulderPair};
 use crate::policy::{EpsilonDecay, apex_epsilon};
 
 /// Why run settings received from a learner are unusable.
@@ -164,6 +164,10 @@ impl From<&EnvConfig> for proto::EnvSettings {
             action_levels: env.action_levels,
             action_repeat: env.action_repeat,
             direction: direction as i32,
+            shoulder_pair: match env.shoulder_pair {
+                ShoulderPair::SoftConstraint => proto::ShoulderPair::SoftConstraint,
+                ShoulderPair::Viscous => proto::ShoulderPair::Viscous,
+            } as i32,
             max_torque: env.max_torque,
             dt: env.dt,
             min_episode_steps: env.min_episode_steps,
@@ -239,8 +243,20 @@ impl TryFrom<&proto::EnvSettings> for EnvConfig {
                 });
             }
         };
+        let shoulder_pair = match proto::ShoulderPair::try_from(env.shoulder_pair) {
+            Ok(proto::ShoulderPair::SoftConstraint) => ShoulderPair::SoftConstraint,
+            Ok(proto::ShoulderPair::Viscous) => ShoulderPair::Viscous,
+            Err(_) => {
+                return Err(SettingsError::Field {
+                    field: "env.shoulder_pair",
+                    value: env.shoulder_pair.to_string(),
+                    allowed: "0 (soft_constraint) or 1 (viscous)",
+                });
+            }
+        };
         let config = EnvConfig {
             action_levels: env.action_levels,
+            shoulder_pair,
             action_repeat: env.action_repeat,
             direction,
             max_torque: env.max_torque,
@@ -336,6 +352,7 @@ mod tests {
         settings.env.observation_history = 4;
         settings.env.contact_prediction = 0.004;
         settings.env.joint_limit_timeconst = 0.03;
+        settings.env.shoulder_pair = ShoulderPair::Viscous;
         settings.env.randomization.latency_steps = [0, 2];
         settings.env.randomization.push_interval_s = 1.5;
         settings.env.randomization.push_roll_rate = 4.0;

@@ -43,7 +43,10 @@ pub use validate::{ProtoError, SequenceTracker, TransitionLimits};
 /// 12: the env settings carry the penalty on the joints' excursions past their limits
 ///    (`EnvSettings.joint_limit_penalty`) and episode stats its part of the return
 ///    (`EpisodeStats.return_joint_limit`); an older actor would train on another reward.
-pub const PROTOCOL_VERSION: u32 = 12;
+/// 13: the env settings carry how the base–link 1 contact pair acts on the shoulder
+///    (`EnvSettings.shoulder_pair`); an older actor would simulate the viscous stand-in
+///    whatever the learner's config says.
+pub const PROTOCOL_VERSION: u32 = 13;
 
 /// Largest encoded message a node accepts, in bytes. The largest legal messages: the weights
 /// of a network of [`MAX_NETWORK_PARAMETERS`] (about 3.6 MB; the study's network is 780 kB)

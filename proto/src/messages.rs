@@ -224,6 +224,9 @@ pub struct EnvSettings {
     /// (the study's reward).
     #[prost(float, tag = "22")]
     pub joint_limit_penalty: f32,
+    /// How the base–link 1 contact pair acts on the shoulder.
+    #[prost(enumeration = "ShoulderPair", tag = "23")]
+    pub shoulder_pair: i32,
 }
 
 /// Ranges drawn once per episode (`crawler_actor::env::Randomization` documents each); every
@@ -255,6 +258,14 @@ pub struct RandomizationSettings {
 pub enum Direction {
     Forward = 0,
     Backward = 1,
+}
+
+/// How the base–link 1 contact pair acts on the shoulder (`crawler_actor::env::ShoulderPair`).
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, PartialOrd, Ord, prost::Enumeration)]
+#[repr(i32)]
+pub enum ShoulderPair {
+    SoftConstraint = 0,
+    Viscous = 1,
 }
 
 /// Ape-X's fixed per-actor ε: actor i of `actors` uses base^(1 + alpha·i/(actors − 1)).

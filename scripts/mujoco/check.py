@@ -143,8 +143,8 @@ class Crawler:
 
     def base_contact_force(self) -> float:
         """The normal force on the base's contacts (N), as the Rust env's `base_contact_force`:
-        every contact of the base but the base–link 1 pair, which the port models as the
-        shoulder's damping."""
+        every contact of the base but the base–link 1 pair, which the port models as a
+        constraint on the shoulder's rate (env.shoulder_pair)."""
         total, force = 0.0, np.zeros(6)
         for i in range(self.data.ncon):
             geoms = (self.data.contact[i].geom1, self.data.contact[i].geom2)
@@ -550,12 +550,7 @@ def replay(args) -> None:
         + "\n"
         for s in starts
     )
-    result = subprocess.run([args.rapier, *args.overrides], input=queries, capture_output=True, text=True)
-    if result.returncode != 0:
-        sys.exit(f"error: {args.rapier} failed ({result.returncode}): {result.stderr.strip()}")
-    replies = [json.loads(line)["states"] for line in result.stdout.splitlines() if line.strip()]
-    if len(replies) != len(starts):
-        sys.exit(f"error: {args.rapier} answered {len(replies)} of {len(starts)} queries")
+    replies = run_state_replay(args.rapier, args.overrides, queries, len(starts))
 
     # Drift of this engine from MuJoCo after h steps from the same state, over all starts.
     horizons = sorted({1, 5, 25, horizon} & set(range(1, horizon + 1)))
@@ -730,6 +725,18 @@ def airborne_states(count: int, seed: int) -> list:
     return states
 
 
+def run_state_replay(binary: str, overrides: list, queries: str, expected: int) -> list:
+    """This engine's answers (each a list of states) to `expected` state_replay queries, the
+    JSON lines `queries`, with the env settings `overrides`; exits naming the failure."""
+    result = subprocess.run([binary, *overrides], input=queries, capture_output=True, text=True)
+    if result.returncode != 0:
+        sys.exit(f"error: {binary} failed ({result.returncode}): {result.stderr.strip()}")
+    replies = [json.loads(line)["states"] for line in result.stdout.splitlines() if line.strip()]
+    if len(replies) != expected:
+        sys.exit(f"error: {binary} answered {len(replies)} of {expected} queries")
+    return replies
+
+
 def one_step(crawler: Crawler, state) -> tuple:
     """qpos and qvel before, and qvel after, one step of `crawler` from an airborne `state`."""
     q1, q2, velocity, torques = state
@@ -775,12 +782,8 @@ def pair(args) -> None:
             query = {"qpos": [float(v) for v in qpos], "qvel": [float(v) for v in qvel],
                      "torques": [[float(t) for t in state[3]]]}
             queries.append(json.dumps(query) + "\n")
-        reply = subprocess.run([args.rapier], input="".join(queries), capture_output=True, text=True)
-        if reply.returncode != 0:
-            sys.exit(f"error: {args.rapier} failed ({reply.returncode}): {reply.stderr.strip()}")
-        ours = [np.array(json.loads(line)["states"][0]["qvel"]) for line in reply.stdout.splitlines() if line.strip()]
-        if len(ours) != len(checked):
-            sys.exit(f"error: {args.rapier} answered {len(ours)} of {len(checked)} queries")
+        replies = run_state_replay(args.rapier, args.overrides, "".join(queries), len(checked))
+        ours = [np.array(states[0]["qvel"]) for states in replies]
         rates = [4, 6, 7]
         error = np.mean([np.abs(o[rates] - t[rates]) for o, t in zip(ours, theirs)], axis=0)
         unpaired = np.mean([np.abs(f[rates] - t[rates]) for f, t in zip(free_ones, theirs)], axis=0)
@@ -851,6 +854,7 @@ def main() -> None:
     pair_parser.add_argument("--rapier", help="the state_replay example's binary: also this engine's one-step error")
     pair_parser.add_argument("--states", type=int, default=400, help="random airborne states to fit on")
     pair_parser.add_argument("--seed", type=int, default=0)
+    pair_parser.add_argument("overrides", nargs="*", help="env settings KEY=VALUE for this engine")
     pair_parser.set_defaults(run=pair)
     solvers_parser = commands.add_parser("solvers", help="a square wave under each of MuJoCo's solvers: rolls")
     solvers_parser.add_argument(

@@ -40,6 +40,22 @@ impl Direction {
     }
 }
 
+/// How the MJCF's contact pair between the base and link 1 acts on the shoulder. Link 1's
+/// capsule starts at the hinge, inside the base, so the pair is in contact at every angle and
+/// can only rub along the hinge.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, Default)]
+#[serde(rename_all = "snake_case")]
+pub enum ShoulderPair {
+    /// As MuJoCo solves it: a soft constraint on the shoulder's rate, which takes a tenth of
+    /// every shoulder acceleration, the motor's included (`model::SHOULDER_PAIR_IMPEDANCE`).
+    #[default]
+    SoftConstraint,
+    /// A viscous torque against the shoulder's rate (`model::SHOULDER_DAMPING`), fitted over
+    /// rates alone: it leaves the motor's own acceleration whole. The default until session 38;
+    /// kept to replay earlier runs' physics.
+    Viscous,
+}
+
 /// Settings of the crawler environment. The defaults reproduce the study.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]
@@ -85,6 +101,9 @@ pub struct EnvConfig {
     /// study's model keeps. Rigid limits are what let open-loop gaits
     /// and learned policies crawl here while they tumble on the study's model.
     pub joint_limit_timeconst: f32,
+    /// How the study's base–link 1 contact pair acts on the shoulder: `soft_constraint` as
+    /// MuJoCo solves it, `viscous` as a damper fitted over rates alone (see [`ShoulderPair`]).
+    pub shoulder_pair: ShoulderPair,
     /// An episode terminates once the base tilts further than this from upright, in degrees
     /// (the angle between its up axis and the world's). 180 never terminates: the study. A
     /// smaller value ends episodes on a fall, as legged_gym does, so that a policy loses all
@@ -150,6 +169,7 @@ impl Default for EnvConfig {
             start_joint1_deg: [-45.0, 0.0],
             start_joint2_deg: [-22.5, 22.5],
             joint_limit_timeconst: 0.02,
+            shoulder_pair: ShoulderPair::default(),
             max_tilt_deg: 180.0,
             position_reward_weight: 1.0,
             tilt_rate_penalty: 0.0,

@@ -9,7 +9,7 @@ use rand_chacha::ChaCha8Rng;
 use rapier3d::math::{Pose, Rotation, Vector};
 use rapier3d::prelude::*;
 
-use super::config::EnvConfig;
+use super::config::{EnvConfig, ShoulderPair};
 use super::model::*;
 use super::observation::{self as obs, OBS_DIM};
 use super::randomization::EpisodePhysics;
@@ -160,6 +160,10 @@ struct Handles {
     tip_collider: ColliderHandle,
     /// The shoulder (base–link 1) and knee (link 1–link 2) hinges.
     joints: [ImpulseJointHandle; 2],
+    /// The base–link 1 contact pair as a soft constraint: a joint that locks nothing, whose
+    /// motor is the pair (`env.shoulder_pair = "soft_constraint"`; see
+    /// [`Crawler::set_shoulder_pair`]). `None` under the viscous stand-in.
+    shoulder_pair: Option<ImpulseJointHandle>,
 }
 
 /// Running totals of the current episode.
@@ -330,9 +334,13 @@ impl Crawler {
             decided
         };
         let strength = self.physics.motor_strength;
-        // The shoulder's damping (the MJCF's base–link 1 contact) acts beside its motor.
         let rates = self.joint_rates();
-        let torques = [torques[0] * strength[0] - SHOULDER_DAMPING * rates[0], torques[1] * strength[1]];
+        let mut torques = [torques[0] * strength[0], torques[1] * strength[1]];
+        // The MJCF's base–link 1 contact acts on the shoulder beside its motor.
+        match self.config.shoulder_pair {
+            ShoulderPair::Viscous => torques[0] -= SHOULDER_DAMPING * rates[0],
+            ShoulderPair::SoftConstraint => self.set_shoulder_pair(rates[0]),
+        }
         let soft_limits =
             if self.physics.joint_limit_timeconst > 0.0 { self.soft_limit_targets(rates) } else { [None; 2] };
         let bodies = &mut self.world.bodies;
@@ -393,6 +401,23 @@ impl Crawler {
         before.restore_into(&mut self.world);
         self.set_soft_limits(active);
         self.world.step();
+    }
+
+    /// Sets the soft-constraint pair's motor for this step from the shoulder's angle and rate
+    /// `shoulder_rate`: MuJoCo's soft constraint `Δq̇1 = dt·[(1 − d)·a₀ + d·a_ref]` with
+    /// `a_ref = −B·q̇1`, solved as the soft limits are (a velocity motor targeting
+    /// `q̇1 + dt·a_ref` with the compliance `d/((1 − d)·dt)`), with the motor's own d and B
+    /// ([`SHOULDER_PAIR_IMPEDANCE`]). Unlike a limit it acts in both directions, so it needs
+    /// no free step first.
+    fn set_shoulder_pair(&mut self, shoulder_rate: f32) {
+        let Some(handle) = self.handles.shoulder_pair else { return };
+        let dt = self.config.dt;
+        let [constant, cosine] = SHOULDER_PAIR_IMPEDANCE;
+        let impedance = constant + cosine * self.joint_angles()[0].cos();
+        let target_rate = shoulder_rate * (1.0 - dt * SHOULDER_PAIR_REFERENCE_RATE);
+        if let Some(joint) = self.world.impulse_joints.get_mut(handle, false) {
+            joint.data.set_motor(JointAxis::AngX, 0.0, target_rate, 0.0, impedance / ((1.0 - impedance) * dt));
+        }
     }
 
     /// Releases whichever soft limit is still engaged. Joints are written only where one is,
@@ -1043,8 +1068,31 @@ fn build_world(config: &EnvConfig, physics: &EpisodePhysics, q1: f32, q2: f32) -
     let shoulder = world.impulse_joints.insert(base, link1, hinge(link1_origin, JOINT1_RANGE), true);
     let knee =
         world.impulse_joints.insert(link1, link2, hinge(Vector::new(LINK1_LENGTH, 0.0, 0.0), JOINT2_RANGE), true);
+    // The base–link 1 pair as a soft constraint: a second joint on the shoulder's frames that
+    // locks no axis, so its motor (set each step) is all it does. It is apart from the hinge
+    // because the hinge's own motor is the shoulder's soft limit.
+    let shoulder_pair = (config.shoulder_pair == ShoulderPair::SoftConstraint).then(|| {
+        let pair = GenericJointBuilder::new(JointAxesMask::empty())
+            .local_axis1(Vector::Y)
+            .local_axis2(Vector::Y)
+            .local_anchor1(link1_origin)
+            .local_anchor2(Vector::ZERO)
+            .contacts_enabled(false)
+            .motor_model(JointAxis::AngX, MotorModel::AccelerationBased)
+            .motor_max_force(JointAxis::AngX, f32::MAX);
+        world.impulse_joints.insert(base, link1, pair, true)
+    });
 
-    let handles = Handles { base, link1, link2, base_collider, link1_collider, tip_collider, joints: [shoulder, knee] };
+    let handles = Handles {
+        base,
+        link1,
+        link2,
+        base_collider,
+        link1_collider,
+        tip_collider,
+        joints: [shoulder, knee],
+        shoulder_pair,
+    };
     (world, handles)
 }
 

@@ -11,7 +11,7 @@ pub mod observation;
 pub mod randomization;
 mod vec_env;
 
-pub use config::{Direction, EnvConfig, EnvConfigError};
+pub use config::{Direction, EnvConfig, EnvConfigError, ShoulderPair};
 pub use crawler::{Crawler, EpisodeSummary, GeneralizedState, InvalidStateError, PoseFrame, Reward, StepOutcome};
 pub use observation::{OBS_DIM, OBS_LAYOUT_VERSION};
 pub use randomization::{EpisodePhysics, Randomization};

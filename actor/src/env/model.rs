@@ -26,13 +26,31 @@ pub const TIP_HALF_EXTENT: f32 = 0.01;
 pub const TIP_MASS: f32 = 0.1;
 pub const TIP_FRICTION: f32 = 0.99;
 
-/// Viscous damping at the shoulder, N·m·s/rad. The MJCF declares a contact pair between the
-/// base and link 1, whose capsule starts at the hinge and so overlaps the base by its radius
-/// at every angle. Along the hinge that contact can only rub: MuJoCo's soft friction turns it
-/// into a torque against the shoulder's rate, −0.0069·q̇1 (a least-squares fit over 400
-/// random states, R² = 0.9997; `EXPERIMENTS.md`, "State replay"). A 10 rad/s swing loses
-/// 0.07 N·m of its motor's 1 N·m to it.
+/// Viscous damping at the shoulder, N·m·s/rad, for `env.shoulder_pair = "viscous"`. The MJCF
+/// declares a contact pair between the base and link 1, whose capsule starts at the hinge and
+/// so overlaps the base by its radius at every angle. Along the hinge that contact can only
+/// rub. A least-squares fit of MuJoCo's shoulder acceleration over rates alone found a torque
+/// against the shoulder's rate, −0.0069·q̇1 (400 random states, R² = 0.9997; `EXPERIMENTS.md`,
+/// "State replay"); fitted against one MuJoCo step with and without the pair, the pair also
+/// takes a tenth of every acceleration, which this term leaves whole (see
+/// [`SHOULDER_PAIR_IMPEDANCE`]).
 pub const SHOULDER_DAMPING: f32 = 0.0069;
+
+/// The base–link 1 pair as MuJoCo solves it (`env.shoulder_pair = "soft_constraint"`): a soft
+/// constraint on the shoulder's rate, under which one step changes the rate by
+/// `dt·[(1 − d)·a₀ + d·a_ref]`, with a₀ the acceleration without the pair, `a_ref = −B·q̇1`
+/// and the impedance `d = 0.054 + 0.064·cos q1`, B ≈ 104 /s (`scripts/mujoco-check pair`,
+/// R² = 0.9965 over 400 random airborne states; EXPERIMENTS.md, "Session 37").
+///
+/// This engine solves it as a velocity motor on a second base–link 1 joint. rapier spreads a
+/// motor over its substeps as a damper, so the same effect per step takes the motor's own
+/// values, fitted against the same MuJoCo steps on 300 other states: the impedance is
+/// `a + b·cos q1` with these [a, b] (twice MuJoCo's) and the reference rate
+/// [`SHOULDER_PAIR_REFERENCE_RATE`].
+pub const SHOULDER_PAIR_IMPEDANCE: [f32; 2] = [0.110, 0.123];
+
+/// B′ in /s: the soft pair's motor targets `q̇1·(1 − dt·B′)` (see [`SHOULDER_PAIR_IMPEDANCE`]).
+pub const SHOULDER_PAIR_REFERENCE_RATE: f32 = 65.0;
 
 pub const FLOOR_Z: f32 = -0.05;
 pub const FLOOR_FRICTION: f32 = 0.5;
