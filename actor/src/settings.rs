@@ -228,32 +228,24 @@ impl TryFrom<&proto::RandomizationSettings> for Randomization {
     }
 }
 
+/// The wire enum `T` that `value` encodes, or an error naming `field` and its `allowed` values.
+fn wire_enum<T: TryFrom<i32>>(value: i32, field: &'static str, allowed: &'static str) -> Result<T, SettingsError> {
+    T::try_from(value).map_err(|_| SettingsError::Field { field, value: value.to_string(), allowed })
+}
+
 impl TryFrom<&proto::EnvSettings> for EnvConfig {
     type Error = SettingsError;
 
     fn try_from(env: &proto::EnvSettings) -> Result<Self, SettingsError> {
-        let direction = match proto::Direction::try_from(env.direction) {
-            Ok(proto::Direction::Forward) => Direction::Forward,
-            Ok(proto::Direction::Backward) => Direction::Backward,
-            Err(_) => {
-                return Err(SettingsError::Field {
-                    field: "env.direction",
-                    value: env.direction.to_string(),
-                    allowed: "0 (forward) or 1 (backward)",
-                });
-            }
+        let direction = match wire_enum(env.direction, "env.direction", "0 (forward) or 1 (backward)")? {
+            proto::Direction::Forward => Direction::Forward,
+            proto::Direction::Backward => Direction::Backward,
         };
-        let shoulder_pair = match proto::ShoulderPair::try_from(env.shoulder_pair) {
-            Ok(proto::ShoulderPair::SoftConstraint) => ShoulderPair::SoftConstraint,
-            Ok(proto::ShoulderPair::Viscous) => ShoulderPair::Viscous,
-            Err(_) => {
-                return Err(SettingsError::Field {
-                    field: "env.shoulder_pair",
-                    value: env.shoulder_pair.to_string(),
-                    allowed: "0 (soft_constraint) or 1 (viscous)",
-                });
-            }
-        };
+        let shoulder_pair =
+            match wire_enum(env.shoulder_pair, "env.shoulder_pair", "0 (soft_constraint) or 1 (viscous)")? {
+                proto::ShoulderPair::SoftConstraint => ShoulderPair::SoftConstraint,
+                proto::ShoulderPair::Viscous => ShoulderPair::Viscous,
+            };
         let config = EnvConfig {
             action_levels: env.action_levels,
             shoulder_pair,
@@ -409,6 +401,18 @@ mod tests {
         }
         let error = ActorSettings::try_from(&no_tilt).unwrap_err().to_string();
         assert!(error.contains("max_tilt_deg"), "{error}");
+        // Enum values the protocol does not define are refused by name, not read as a default.
+        for (field, set) in [
+            ("env.direction", (|env: &mut proto::EnvSettings| env.direction = 7) as fn(&mut proto::EnvSettings)),
+            ("env.shoulder_pair", |env: &mut proto::EnvSettings| env.shoulder_pair = -1),
+        ] {
+            let mut unknown = good.clone();
+            if let Some(env) = unknown.env.as_mut() {
+                set(env);
+            }
+            let error = ActorSettings::try_from(&unknown).unwrap_err().to_string();
+            assert!(error.contains(field), "{error}");
+        }
         let mut nan = good.clone();
         nan.status_interval_s = f64::NAN;
         assert!(ActorSettings::try_from(&nan).is_err());
