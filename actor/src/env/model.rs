@@ -46,7 +46,9 @@ pub const SHOULDER_DAMPING: f32 = 0.0069;
 /// motor over its substeps as a damper, so the same effect per step takes the motor's own
 /// values, fitted against the same MuJoCo steps on 300 other states: the impedance is
 /// `a + b·cos q1` with these [a, b] (twice MuJoCo's) and the reference rate
-/// [`SHOULDER_PAIR_REFERENCE_RATE`].
+/// [`SHOULDER_PAIR_REFERENCE_RATE`]. The fit holds for the study's 2 ms step and rapier's
+/// 4 solver iterations (the presets' values); with others, rerun `scripts/mujoco-check pair`
+/// with them as overrides before trusting it.
 pub const SHOULDER_PAIR_IMPEDANCE: [f32; 2] = [0.110, 0.123];
 
 /// B′ in /s: the soft pair's motor targets `q̇1·(1 − dt·B′)` (see [`SHOULDER_PAIR_IMPEDANCE`]).
