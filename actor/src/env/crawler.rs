@@ -334,15 +334,15 @@ impl Crawler {
             decided
         };
         let strength = self.physics.motor_strength;
-        let rates = self.joint_rates();
+        let (angles, rates) = (self.joint_angles(), self.joint_rates());
         let mut torques = [torques[0] * strength[0], torques[1] * strength[1]];
         // The MJCF's base–link 1 contact acts on the shoulder beside its motor.
         match self.config.shoulder_pair {
             ShoulderPair::Viscous => torques[0] -= SHOULDER_DAMPING * rates[0],
-            ShoulderPair::SoftConstraint => self.set_shoulder_pair(rates[0]),
+            ShoulderPair::SoftConstraint => self.set_shoulder_pair(angles[0], rates[0]),
         }
         let soft_limits =
-            if self.physics.joint_limit_timeconst > 0.0 { self.soft_limit_targets(rates) } else { [None; 2] };
+            if self.physics.joint_limit_timeconst > 0.0 { self.soft_limit_targets(angles, rates) } else { [None; 2] };
         let bodies = &mut self.world.bodies;
         let axis1 = bodies[self.handles.base].rotation() * Vector::Y;
         let axis2 = bodies[self.handles.link1].rotation() * Vector::Y;
@@ -403,20 +403,20 @@ impl Crawler {
         self.world.step();
     }
 
-    /// Sets the soft-constraint pair's motor for this step from the shoulder's angle and rate
-    /// `shoulder_rate`: MuJoCo's soft constraint `Δq̇1 = dt·[(1 − d)·a₀ + d·a_ref]` with
+    /// Sets the soft-constraint pair's motor for this step from the shoulder's angle and rate:
+    /// MuJoCo's soft constraint `Δq̇1 = dt·[(1 − d)·a₀ + d·a_ref]` with
     /// `a_ref = −B·q̇1`, solved as the soft limits are (a velocity motor targeting
     /// `q̇1 + dt·a_ref` with the compliance `d/((1 − d)·dt)`), with the motor's own d and B
     /// ([`SHOULDER_PAIR_IMPEDANCE`]). Unlike a limit it acts in both directions, so it needs
     /// no free step first.
-    fn set_shoulder_pair(&mut self, shoulder_rate: f32) {
+    fn set_shoulder_pair(&mut self, shoulder_angle: f32, shoulder_rate: f32) {
         let Some(handle) = self.handles.shoulder_pair else { return };
         let dt = self.config.dt;
         let [constant, cosine] = SHOULDER_PAIR_IMPEDANCE;
-        let impedance = constant + cosine * self.joint_angles()[0].cos();
+        let damping = compliance_damping(constant + cosine * shoulder_angle.cos(), dt);
         let target_rate = shoulder_rate * (1.0 - dt * SHOULDER_PAIR_REFERENCE_RATE);
         if let Some(joint) = self.world.impulse_joints.get_mut(handle, false) {
-            joint.data.set_motor(JointAxis::AngX, 0.0, target_rate, 0.0, impedance / ((1.0 - impedance) * dt));
+            joint.data.set_motor(JointAxis::AngX, 0.0, target_rate, 0.0, damping);
         }
     }
 
@@ -495,12 +495,11 @@ impl Crawler {
     ///
     /// Returns each joint's limit where the joint is past one, `None` where it is within
     /// its range.
-    fn soft_limit_targets(&self, rates: [f32; 2]) -> [Option<SoftLimitTarget>; 2] {
+    fn soft_limit_targets(&self, angles: [f32; 2], rates: [f32; 2]) -> [Option<SoftLimitTarget>; 2] {
         let timeconst = self.physics.joint_limit_timeconst;
         let stiffness = 1.0 / (LIMIT_IMPEDANCE_MAX * timeconst).powi(2);
         let damping = 2.0 / (LIMIT_IMPEDANCE_MAX * timeconst);
         let dt = self.config.dt;
-        let angles = self.joint_angles();
         [0, 1].map(|index| {
             let ([low, high], angle, rate) = ([JOINT1_RANGE, JOINT2_RANGE][index], angles[index], rates[index]);
             // Distance into the range from the nearer violated limit (negative past it), and
@@ -517,7 +516,7 @@ impl Crawler {
             Some(SoftLimitTarget {
                 inward,
                 target_rate: rate + dt * inward * reference,
-                compliance_damping: impedance / ((1.0 - impedance) * dt),
+                compliance_damping: compliance_damping(impedance, dt),
             })
         })
     }
@@ -824,6 +823,14 @@ const LIMIT_IMPEDANCE_WIDTH: f32 = 0.001;
 fn release_soft_limit(joint: &mut GenericJoint) {
     joint.motor_axes.remove(JointAxesMask::ANG_X);
     joint.motors[JointAxis::AngX as usize].impulse = 0.0;
+}
+
+/// The damping of an acceleration-based rapier motor whose compliance is MuJoCo's regulariser
+/// for a soft constraint of impedance `impedance` (0 < d < 1), `d/((1 − d)·dt)`: such a motor
+/// moves its joint's rate by `dt·[(1 − d)·a₀ + d·a_ref]` as MuJoCo does
+/// ([`Crawler::soft_limit_targets`] derives it). Used by the soft limits and the soft pair.
+fn compliance_damping(impedance: f32, dt: f32) -> f32 {
+    impedance / ((1.0 - impedance) * dt)
 }
 
 /// One step's soft limit on a joint past it ([`Crawler::soft_limit_targets`]).
