@@ -3,7 +3,8 @@
 //! Two halves: an async half (zenoh I/O, status, signals) and a simulation thread that steps
 //! K crawlers with batched plain-Rust inference. They meet at three points, each bounded:
 //! - the latest weights, in a `watch` channel: the simulation swaps them in between steps;
-//! - outgoing messages, in a bounded channel: when the link is slow the simulation waits
+//! - outgoing messages, in a bounded channel: when the link is slow, or the learner's insert
+//!   credit (`proto::InsertCredit`) does not yet admit the next batch, the simulation waits
 //!   (back-pressure) instead of queueing without limit;
 //! - a stop flag.
 
@@ -140,9 +141,19 @@ pub async fn run(mut options: ActorOptions, stop: Arc<AtomicBool>) -> Result<(),
     info!(run = %run_id, id, envs = settings.envs_per_actor, evaluator = options.evaluator, "joined run");
 
     let (weights, policy_rx) = WeightsFeed::new(&run_id, settings.env.policy_input_dim(), settings.env.num_actions());
+    let (credit_tx, credit_rx) = watch::channel(None);
+    let _credit = if settings.insert_credit && !options.evaluator {
+        Some(subscribe_credit(&session, &run_id, id, credit_tx).await?)
+    } else {
+        None
+    };
     let _subscriptions = subscribe(&session, &run_id, &weights, &stop, id, options.evaluator).await?;
     weights.wait_for_first(&session, &policy_rx, &stop).await;
     let publishers = Publishers::declare(&session, &run_id, id).await?;
+    // Distinct per process: start time mixed with the process id.
+    let started = std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).map_or(0, |d| d.as_nanos() as u64);
+    let incarnation = (started ^ (u64::from(std::process::id()) << 40)).max(1);
+    let gate = (settings.insert_credit && !options.evaluator).then(|| CreditGate::new(incarnation, credit_rx));
 
     let counters = Arc::new(Counters::default());
     let (out_tx, out_rx) = mpsc::channel::<Outgoing>(8);
@@ -151,11 +162,11 @@ pub async fn run(mut options: ActorOptions, stop: Arc<AtomicBool>) -> Result<(),
         let (run_id, options) = (run_id.clone(), options.clone());
         std::thread::Builder::new()
             .name("simulation".into())
-            .spawn(move || simulate(&options, &run_id, &settings, policy_rx, &out_tx, &stop, &counters))
+            .spawn(move || simulate(&options, &run_id, &settings, incarnation, policy_rx, &out_tx, &stop, &counters))
             .map_err(NodeError::SimulationThread)?
     };
     let reporter = StatusReporter { run_id: &run_id, id, settings: &settings, options: &options, counters: &counters };
-    publishers.forward(out_rx, reporter).await;
+    publishers.forward(out_rx, gate, reporter, &stop).await;
     let result = simulation.join();
     info!("actor {id} stopped");
     let _ = session.close().await;
@@ -286,6 +297,90 @@ async fn subscribe(
     Ok(Subscriptions { _weights: weights, _control: control, _token: token })
 }
 
+/// Follows this actor's insert credit (`crawler/<run>/credit/<id>`): each valid one replaces
+/// the last in `credit_tx`.
+async fn subscribe_credit(
+    session: &zenoh::Session,
+    run_id: &str,
+    id: u32,
+    credit_tx: watch::Sender<Option<proto::InsertCredit>>,
+) -> Result<zenoh::pubsub::Subscriber<()>, NodeError> {
+    let run = run_id.to_string();
+    session
+        .declare_subscriber(keys::credit(run_id, id))
+        .callback(move |sample| {
+            match proto::validate::insert_credit(&sample.payload().to_bytes(), &run, sample.key_expr().as_str()) {
+                Ok(credit) => {
+                    credit_tx.send_replace(Some(credit));
+                }
+                Err(e) => debug!("ignoring insert credit: {e}"),
+            }
+        })
+        .await
+        .map_err(zenoh_error("subscribing to insert credit"))
+}
+
+/// Whether the learner's insert credit admits this process's next batch (`proto::InsertCredit`).
+#[derive(Debug)]
+pub struct CreditGate {
+    incarnation: u64,
+    credit_rx: watch::Receiver<Option<proto::InsertCredit>>,
+    /// Batches a credit for another incarnation still admits: one per such credit received,
+    /// so that a learner that has not heard of this process yet learns of it.
+    introductions: u32,
+}
+
+impl CreditGate {
+    /// A gate for actor process `incarnation`, fed the credits that arrive by `credit_rx`.
+    pub fn new(incarnation: u64, credit_rx: watch::Receiver<Option<proto::InsertCredit>>) -> Self {
+        Self { incarnation, credit_rx, introductions: 0 }
+    }
+
+    /// Takes in a credit that arrived since the last look.
+    fn refresh(&mut self) {
+        if self.credit_rx.has_changed().unwrap_or(false) {
+            let introduces = self
+                .credit_rx
+                .borrow_and_update()
+                .as_ref()
+                .is_some_and(|credit| credit.incarnation != self.incarnation && credit.window > 0);
+            self.introductions = u32::from(introduces);
+        }
+    }
+
+    /// Whether batch `sequence` may go now; consumes an introduction when it is one.
+    pub fn admit(&mut self, sequence: u64) -> bool {
+        self.refresh();
+        let credit = self.credit_rx.borrow();
+        match credit.as_ref() {
+            Some(credit) if credit.incarnation == self.incarnation => credit.admits(self.incarnation, sequence),
+            Some(_) if self.introductions > 0 => {
+                drop(credit);
+                self.introductions -= 1;
+                true
+            }
+            _ => false,
+        }
+    }
+
+    /// Resolves when a new credit arrives (never, once the learner's session is gone).
+    pub async fn changed(&mut self) {
+        if self.credit_rx.changed().await.is_err() {
+            std::future::pending::<()>().await;
+        }
+        // Seen by `refresh` in the next `admit`.
+        self.credit_rx.mark_changed();
+    }
+}
+
+/// Resolves when the gate sees a new credit; never without a gate.
+async fn credit_changed(gate: Option<&mut CreditGate>) {
+    match gate {
+        Some(gate) => gate.changed().await,
+        None => std::future::pending().await,
+    }
+}
+
 /// The actor's three publishers: transitions block when the link is busy (back-pressure on
 /// the simulation), stats and status are dropped instead.
 #[derive(Debug)]
@@ -311,28 +406,62 @@ impl Publishers {
         })
     }
 
-    /// Publishes what the simulation sends until it ends, and a status report every
-    /// `status_interval_s`.
-    async fn forward(&self, mut out_rx: mpsc::Receiver<Outgoing>, mut reporter: StatusReporter<'_>) {
+    /// Publishes what the simulation sends until it ends or `stop` is set, and a status
+    /// report every `status_interval_s`. With a credit gate, a batch the learner's credit
+    /// does not admit yet waits for one that does, and so does everything behind it.
+    async fn forward(
+        &self,
+        mut out_rx: mpsc::Receiver<Outgoing>,
+        mut gate: Option<CreditGate>,
+        mut reporter: StatusReporter<'_>,
+        stop: &AtomicBool,
+    ) {
         let mut ticker = tokio::time::interval(Duration::from_secs_f64(reporter.settings.status_interval_s));
         let mut last = (0u64, Instant::now());
+        let mut waiting: Option<(proto::TransitionBatch, Instant)> = None;
+        let mut waited = Duration::ZERO;
         loop {
             tokio::select! {
-                message = out_rx.recv() => {
+                message = out_rx.recv(), if waiting.is_none() => {
                     let Some(message) = message else { break };
-                    let (publisher, bytes) = match &message {
-                        Outgoing::Batch(batch) => (&self.transitions, batch.encode_to_vec()),
-                        Outgoing::Stats(episode) => (&self.stats, episode.encode_to_vec()),
-                    };
-                    if let Err(e) = publisher.put(bytes).await {
-                        warn!("publish failed: {e}");
+                    match message {
+                        Outgoing::Batch(batch) => {
+                            if gate.as_mut().is_none_or(|gate| gate.admit(batch.sequence)) {
+                                self.publish(&self.transitions, batch.encode_to_vec()).await;
+                            } else {
+                                waiting = Some((batch, Instant::now()));
+                            }
+                        }
+                        Outgoing::Stats(episode) => self.publish(&self.stats, episode.encode_to_vec()).await,
+                    }
+                }
+                () = credit_changed(gate.as_mut()), if waiting.is_some() => {
+                    if let (Some(gate), Some((batch, _))) = (gate.as_mut(), waiting.as_ref())
+                        && gate.admit(batch.sequence)
+                        && let Some((batch, since)) = waiting.take()
+                    {
+                        waited += since.elapsed();
+                        self.publish(&self.transitions, batch.encode_to_vec()).await;
                     }
                 }
                 _ = ticker.tick() => {
-                    let report = reporter.report(&mut last);
+                    // The wait so far of a batch still waiting counts in this report.
+                    let now = Instant::now();
+                    if let Some((_, since)) = waiting.as_mut() {
+                        waited += now.duration_since(*since);
+                        *since = now;
+                    }
+                    let report = reporter.report(&mut last, std::mem::take(&mut waited));
                     let _ = self.status.put(report.encode_to_vec()).await;
                 }
+                () = stopped(stop) => break,
             }
+        }
+    }
+
+    async fn publish(&self, publisher: &zenoh::pubsub::Publisher<'static>, bytes: Vec<u8>) {
+        if let Err(e) = publisher.put(bytes).await {
+            warn!("publish failed: {e}");
         }
     }
 }
@@ -348,11 +477,14 @@ struct StatusReporter<'a> {
 }
 
 impl StatusReporter<'_> {
-    /// The report since `last` (steps, time), which it advances; touches the heartbeat file.
-    fn report(&mut self, last: &mut (u64, Instant)) -> proto::ActorStatus {
+    /// The report since `last` (steps, time), which it advances, with the time batches
+    /// `waited` for insert credit meanwhile; touches the heartbeat file.
+    fn report(&mut self, last: &mut (u64, Instant), waited: Duration) -> proto::ActorStatus {
         let counters = self.counters;
         let steps = counters.env_steps.load(Ordering::Relaxed);
-        let rate = (steps - last.0) as f64 / last.1.elapsed().as_secs_f64().max(1e-9);
+        let seconds = last.1.elapsed().as_secs_f64().max(1e-9);
+        let rate = (steps - last.0) as f64 / seconds;
+        let credit_wait_fraction = (waited.as_secs_f64() / seconds).clamp(0.0, 1.0) as f32;
         *last = (steps, Instant::now());
         let report = proto::ActorStatus {
             protocol_version: PROTOCOL_VERSION,
@@ -365,6 +497,7 @@ impl StatusReporter<'_> {
             epsilon: f64::from_bits(counters.epsilon_bits.load(Ordering::Relaxed)),
             num_envs: self.settings.envs_per_actor as u32,
             evaluator: self.options.evaluator,
+            credit_wait_fraction,
         };
         if let Some(path) = &self.options.heartbeat
             && let Err(e) = std::fs::write(path, steps.to_string())
@@ -376,6 +509,7 @@ impl StatusReporter<'_> {
             steps_per_s = format!("{rate:.0}"),
             weights = report.weights_version,
             epsilon = format!("{:.4}", report.epsilon),
+            credit_wait = format!("{:.2}", report.credit_wait_fraction),
             "actor status"
         );
         report
@@ -459,10 +593,12 @@ fn load_weights(bytes: &[u8], run_id: &str, expected: &NetworkSpec) -> Result<Pu
 }
 
 /// The simulation loop: act, step, batch transitions, report episodes.
+#[allow(clippy::too_many_arguments)]
 fn simulate(
     options: &ActorOptions,
     run_id: &str,
     settings: &ActorSettings,
+    incarnation: u64,
     mut policy_rx: watch::Receiver<Option<Arc<PublishedPolicy>>>,
     out: &mpsc::Sender<Outgoing>,
     stop: &AtomicBool,
@@ -474,9 +610,6 @@ fn simulate(
     let mut env = VecEnv::new(&settings.env, &settings.seeds(id));
     let k = env.len();
     let mut rng = ChaCha8Rng::seed_from_u64(settings.seed ^ (0x9E37_79B9 * (u64::from(id) + 1)));
-    // Distinct per process: start time mixed with the process id.
-    let started = std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).map_or(0, |d| d.as_nanos() as u64);
-    let incarnation = started ^ (u64::from(std::process::id()) << 40);
     let num_actions = settings.env.num_actions() as u32;
     let repeat = u64::from(settings.env.action_repeat);
     let input_dim = env.input_dim();

@@ -85,6 +85,9 @@ pub struct ActorSettings {
     pub seed: u64,
     /// Seconds between status reports.
     pub status_interval_s: f64,
+    /// Publish a transition batch only within the learner's insert credit
+    /// (`proto::InsertCredit`): the learner's `rate.limit_inserts`.
+    pub insert_credit: bool,
 }
 
 impl Default for ActorSettings {
@@ -96,6 +99,7 @@ impl Default for ActorSettings {
             exploration: Exploration::default(),
             seed: 0,
             status_interval_s: 2.0,
+            insert_credit: false,
         }
     }
 }
@@ -116,8 +120,10 @@ impl ActorSettings {
         if !(1..=4096).contains(&self.batch_transitions) {
             return Err(field("actor.batch_transitions", &self.batch_transitions, "an integer in 1..=4096"));
         }
-        if !(self.status_interval_s.is_finite() && self.status_interval_s > 0.0) {
-            return Err(field("actor.status_interval_s", &self.status_interval_s, "a positive number of seconds"));
+        // A status report per 50 ms at most, one per hour at least: anything shorter floods the
+        // learner's log and metrics, anything longer leaves status.json stale.
+        if !(0.05..=3600.0).contains(&self.status_interval_s) {
+            return Err(field("actor.status_interval_s", &self.status_interval_s, "seconds in [0.05, 3600]"));
         }
         // A batch carries two inputs of 40·h values per transition, so which batch sizes fit in
         // one message depends on the history.
@@ -296,6 +302,7 @@ impl From<&ActorSettings> for proto::ActorSettings {
             exploration: Some(exploration),
             seed: settings.seed,
             status_interval_s: settings.status_interval_s,
+            insert_credit: settings.insert_credit,
         }
     }
 }
@@ -322,6 +329,7 @@ impl TryFrom<&proto::ActorSettings> for ActorSettings {
             exploration,
             seed: wire.seed,
             status_interval_s: wire.status_interval_s,
+            insert_credit: wire.insert_credit,
         };
         settings.validate()?;
         Ok(settings)
@@ -416,6 +424,11 @@ mod tests {
         let mut nan = good.clone();
         nan.status_interval_s = f64::NAN;
         assert!(ActorSettings::try_from(&nan).is_err());
+        // A finite but absurd interval would flood the learner with status reports.
+        let mut tiny = good.clone();
+        tiny.status_interval_s = 1e-20;
+        let error = ActorSettings::try_from(&tiny).unwrap_err().to_string();
+        assert!(error.contains("actor.status_interval_s"), "{error}");
         let mut no_envs = good;
         no_envs.envs_per_actor = 0;
         assert!(ActorSettings::try_from(&no_envs).is_err());

@@ -8,6 +8,7 @@
 //! | `crawler/<run>/weights`           | learner only    | [`crate::Weights`] (also a queryable) |
 //! | `crawler/<run>/info`              | learner (queryable) | [`crate::RunInfo`]    |
 //! | `crawler/<run>/control`           | learner only    | [`crate::Control`]        |
+//! | `crawler/<run>/credit/<id>`       | learner only    | [`crate::InsertCredit`] for actor `<id>` |
 //! | `crawler/<run>/alive/actor/<id>`  | liveliness token of actor `<id>` |          |
 //! | `crawler/<run>/alive/evaluator/<id>` | liveliness token of evaluator `<id>` |      |
 //! | `crawler/<run>/alive/learner`     | liveliness token of the learner  |          |
@@ -69,6 +70,14 @@ pub const ASSIGN_PARAMETER: &str = "assign";
 
 pub fn control(run: &str) -> String {
     format!("{ROOT}/{run}/control")
+}
+
+pub fn credit(run: &str, actor: u32) -> String {
+    format!("{ROOT}/{run}/credit/{actor}")
+}
+
+pub fn all_credits(run: &str) -> String {
+    format!("{ROOT}/{run}/credit/*")
 }
 
 pub fn alive_actor(run: &str, actor: u32) -> String {

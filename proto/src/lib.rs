@@ -46,7 +46,10 @@ pub use validate::{ProtoError, SequenceTracker, TransitionLimits};
 /// 13: the env settings carry how the base–link 1 contact pair acts on the shoulder
 ///    (`EnvSettings.shoulder_pair`); an older actor would simulate the viscous stand-in
 ///    whatever the learner's config says.
-pub const PROTOCOL_VERSION: u32 = 13;
+/// 14: the learner may limit inserts (`ActorSettings.insert_credit`) with per-actor credits
+///    (`InsertCredit` on `crawler/<run>/credit/<id>`), and actors report the time they waited
+///    for credit (`ActorStatus.credit_wait_fraction`); an older actor would ignore the limit.
+pub const PROTOCOL_VERSION: u32 = 14;
 
 /// Largest encoded message a node accepts, in bytes. The largest legal messages: the weights
 /// of a network of [`MAX_NETWORK_PARAMETERS`] (about 3.6 MB; the study's network is 780 kB)

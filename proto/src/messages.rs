@@ -316,6 +316,10 @@ pub struct ActorSettings {
     pub seed: u64,
     #[prost(double, tag = "7")]
     pub status_interval_s: f64,
+    /// Whether the learner limits inserts with [`InsertCredit`]: an actor then publishes a
+    /// transition batch only within the window its credit grants.
+    #[prost(bool, tag = "8")]
+    pub insert_credit: bool,
 }
 
 /// One finished episode.
@@ -390,6 +394,44 @@ pub struct ActorStatus {
     pub num_envs: u32,
     #[prost(bool, tag = "10")]
     pub evaluator: bool,
+    /// Share of the time since the previous report during which a finished transition batch
+    /// waited for the learner's insert credit (0 when inserts are not limited).
+    #[prost(float, tag = "11")]
+    pub credit_wait_fraction: f32,
+}
+
+/// The learner's grant to one actor: which transition batches it may publish next.
+///
+/// Flow control as in TCP: an acknowledgement and a window. The learner has received the
+/// batches of actor process `incarnation` up to `next_sequence` (exclusive) and admits
+/// `window` more, so that one may publish sequence `s` while `s < next_sequence + window`.
+/// A credit for another incarnation (the learner has not yet heard from this process)
+/// admits one batch per credit received, which introduces the process to the learner.
+#[derive(Clone, PartialEq, prost::Message)]
+pub struct InsertCredit {
+    #[prost(uint32, tag = "1")]
+    pub protocol_version: u32,
+    #[prost(string, tag = "2")]
+    pub run_id: String,
+    #[prost(uint32, tag = "3")]
+    pub actor_id: u32,
+    /// The actor process the learner last received from under this id; 0 for none.
+    #[prost(uint64, tag = "4")]
+    pub incarnation: u64,
+    /// The sequence number the learner expects next from that process.
+    #[prost(uint64, tag = "5")]
+    pub next_sequence: u64,
+    /// Batches admitted from `next_sequence` on.
+    #[prost(uint32, tag = "6")]
+    pub window: u32,
+}
+
+impl InsertCredit {
+    /// Whether `incarnation` may publish batch `sequence` under this credit (the credit
+    /// of another incarnation is handled by the caller: one batch per credit).
+    pub fn admits(&self, incarnation: u64, sequence: u64) -> bool {
+        self.incarnation == incarnation && sequence < self.next_sequence.saturating_add(u64::from(self.window))
+    }
 }
 
 /// A command from the learner to every node of the run.

@@ -44,6 +44,8 @@ pub enum ProtoError {
     NotLive { actor: u32 },
     #[error("run info carries no actor settings")]
     MissingSettings,
+    #[error("batch {sequence} from actor {actor} lies past the insert credit the learner granted it")]
+    OverCredit { actor: u32, sequence: u64 },
 }
 
 impl ProtoError {
@@ -67,6 +69,7 @@ impl ProtoError {
             ProtoError::KeyMismatch { .. } => "key_mismatch",
             ProtoError::NotLive { .. } => "not_live",
             ProtoError::MissingSettings => "missing_settings",
+            ProtoError::OverCredit { .. } => "over_credit",
         }
     }
 }
@@ -334,6 +337,7 @@ pub fn actor_status(bytes: &[u8], run_id: &str) -> Result<ActorStatus, ProtoErro
     use report_limits::*;
     finite("env_steps_per_second", &[status.env_steps_per_second])?;
     within("env_steps_per_second", &[status.env_steps_per_second], 0.0, MAX_STEPS_PER_SECOND)?;
+    probability("credit_wait_fraction", f64::from(status.credit_wait_fraction))?;
     if status.num_envs > MAX_ENVS {
         return Err(ProtoError::OutOfRange {
             field: "num_envs",
@@ -344,6 +348,15 @@ pub fn actor_status(bytes: &[u8], run_id: &str) -> Result<ActorStatus, ProtoErro
         });
     }
     Ok(status)
+}
+
+/// Decodes and checks an insert credit received on `key` (`crawler/<run>/credit/<id>`): of
+/// this run, and for the actor the key names.
+pub fn insert_credit(bytes: &[u8], run_id: &str, key: &str) -> Result<InsertCredit, ProtoError> {
+    let credit: InsertCredit = decode(bytes, "insert credit")?;
+    check_envelope(credit.protocol_version, &credit.run_id, run_id)?;
+    check_sender(key, credit.actor_id)?;
+    Ok(credit)
 }
 
 /// Decodes and checks a control message.
@@ -388,6 +401,11 @@ impl SequenceTracker {
     /// Forgets an actor that left, so the tracker holds only live actors.
     pub fn forget(&mut self, actor: u32) {
         self.last.remove(&actor);
+    }
+
+    /// The process incarnation and last accepted sequence number of `actor`, if any.
+    pub fn last(&self, actor: u32) -> Option<(u64, u64)> {
+        self.last.get(&actor).copied()
     }
 
     /// Actors tracked.
@@ -631,5 +649,28 @@ mod tests {
     fn run_info_without_settings_is_refused() {
         let info = RunInfo { protocol_version: PROTOCOL_VERSION, run_id: "r".into(), ..Default::default() };
         assert_eq!(run_info(&info.encode_to_vec()).unwrap_err().kind(), "missing_settings");
+    }
+
+    #[test]
+    fn an_insert_credit_is_for_its_run_and_the_actor_its_key_names() {
+        let credit = InsertCredit {
+            protocol_version: PROTOCOL_VERSION,
+            run_id: "r".into(),
+            actor_id: 2,
+            incarnation: 77,
+            next_sequence: 10,
+            window: 3,
+        };
+        let bytes = credit.encode_to_vec();
+        assert_eq!(insert_credit(&bytes, "r", "crawler/r/credit/2").unwrap(), credit);
+        assert_eq!(insert_credit(&bytes, "r", "crawler/r/credit/3").unwrap_err().kind(), "key_mismatch");
+        assert_eq!(insert_credit(&bytes, "other", "crawler/r/credit/2").unwrap_err().kind(), "run_id");
+        assert_eq!(insert_credit(&bytes[..bytes.len() - 1], "r", "crawler/r/credit/2").unwrap_err().kind(), "decode");
+        // The window counts from the acknowledged sequence, for that process only.
+        assert!(credit.admits(77, 12) && !credit.admits(77, 13) && !credit.admits(78, 10));
+        let closed = InsertCredit { window: 0, ..credit.clone() };
+        assert!(!closed.admits(77, 10));
+        let huge = InsertCredit { next_sequence: u64::MAX, window: u32::MAX, ..credit };
+        assert!(huge.admits(77, u64::MAX - 1), "no overflow at the top of the range");
     }
 }

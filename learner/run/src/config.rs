@@ -196,8 +196,14 @@ pub struct RateConfig {
     pub samples_per_insert: f64,
     /// Transitions the replay must hold before the first sample.
     pub warmup: usize,
-    /// Slack, in sampled transitions, before sampling blocks.
+    /// Slack, in sampled transitions, before sampling blocks (and, with `limit_inserts`,
+    /// before inserting blocks).
     pub error_buffer: f64,
+    /// Limit inserts too (Reverb's limiter on both sides): when the learner falls behind,
+    /// actors wait for its insert credit, so samples per insert stays in its band whichever
+    /// side is slower. Off: only sampling waits, and slow learning lets the ratio fall.
+    #[serde(default = "RateConfig::default_limit_inserts")]
+    pub limit_inserts: bool,
 }
 
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -304,7 +310,19 @@ pub struct TrainConfig {
 
 impl Default for RateConfig {
     fn default() -> Self {
-        Self { samples_per_insert: 8.0, warmup: 10_000, error_buffer: 256.0 }
+        Self {
+            samples_per_insert: 8.0,
+            warmup: 10_000,
+            error_buffer: 256.0,
+            limit_inserts: Self::default_limit_inserts(),
+        }
+    }
+}
+
+impl RateConfig {
+    /// Both sides limited by default: see `configs/default.toml`'s `[rate]` for the measurement.
+    const fn default_limit_inserts() -> bool {
+        true
     }
 }
 
@@ -445,6 +463,21 @@ impl TrainConfig {
         if !(r.error_buffer.is_finite() && r.error_buffer >= 0.0) {
             return Err(invalid("rate.error_buffer", r.error_buffer.to_string(), "a finite number ≥ 0"));
         }
+        if r.limit_inserts && r.samples_per_insert <= 0.0 {
+            return Err(invalid(
+                "rate.limit_inserts",
+                "true".into(),
+                "false when rate.samples_per_insert = 0 (no ratio to hold)",
+            ));
+        }
+        // The band must hold one minibatch, or neither side could move.
+        if r.limit_inserts && r.error_buffer < d.batch_size as f64 {
+            return Err(invalid(
+                "rate.error_buffer",
+                r.error_buffer.to_string(),
+                "at least dqn.batch_size when rate.limit_inserts is on",
+            ));
+        }
         if r.warmup < d.batch_size || r.warmup > self.replay.capacity {
             return Err(invalid("rate.warmup", r.warmup.to_string(), "between dqn.batch_size and replay.capacity"));
         }
@@ -534,6 +567,7 @@ impl TrainConfig {
             exploration: self.exploration.clone(),
             seed: self.actor.seed,
             status_interval_s: self.actor.status_interval_s,
+            insert_credit: self.rate.limit_inserts,
         }
     }
 }

@@ -1,14 +1,15 @@
 //! The zenoh access-control policy of the learner's router. It is always on.
 //!
-//! Everything not allowed below is denied. The learner's own publications (weights, control)
-//! and queryables (run info, weights) come from its in-process session, which no ACL rule
+//! Everything not allowed below is denied. The learner's own publications (weights, control,
+//! insert credits) and queryables (run info, weights) come from its in-process session, which no ACL rule
 //! sees: only the remote faces of the router are filtered. So:
 //!
-//! - actors may put transitions, stats and status of this run, subscribe to its weights and
-//!   control, query run info and weights, and declare their liveliness token;
-//! - only the learner publishes weights and control and serves the run's queryables: no
-//!   remote session may put on those keys or declare a queryable, so forged weights, a forged
-//!   stop or a forged run info reach nobody;
+//! - actors may put transitions, stats and status of this run, subscribe to its weights,
+//!   control and insert credits, query run info and weights, and declare their liveliness
+//!   token;
+//! - only the learner publishes weights, control and insert credits and serves the run's
+//!   queryables: no remote session may put on those keys or declare a queryable, so forged
+//!   weights, a forged stop, forged credit or a forged run info reach nobody;
 //! - no remote session may subscribe to transitions: a subscriber that never reads would
 //!   stall the actors' reliable, blocking publications (and so the learner's ingest).
 //!
@@ -50,6 +51,7 @@ pub fn policy(run: &str, identity: Identity) -> Value {
     let status = keys::all_status(run);
     let weights = keys::weights(run);
     let control = keys::control(run);
+    let credits = keys::all_credits(run);
     let info = keys::info(run);
     // Actors that were not told their run ask `crawler/*/info`; the ACL allows a query only
     // when a rule's key includes the query's, so discovery needs the wildcard form.
@@ -70,8 +72,8 @@ pub fn policy(run: &str, identity: Identity) -> Value {
     };
     let rules = vec![
         rule("actor-publishes", "ingress", &["put"], &[&transitions, &stats, &status]),
-        rule("actor-subscribes", "ingress", &["declare_subscriber"], &[&weights, &control]),
-        rule("actor-receives", "egress", &["put"], &[&weights, &control]),
+        rule("actor-subscribes", "ingress", &["declare_subscriber"], &[&weights, &control, &credits]),
+        rule("actor-receives", "egress", &["put"], &[&weights, &control, &credits]),
         rule("actor-queries", "ingress", &["query"], &[&any_info, &weights]),
         rule("actor-gets-replies", "egress", &["reply"], &[&info, &weights]),
         rule("actor-liveliness", "ingress", &["liveliness_token"], &[&actor_tokens, &evaluator_tokens]),
@@ -191,7 +193,13 @@ mod tests {
             assert_eq!(policy["default_permission"], "deny");
             for subject in subjects {
                 let rules = rules_for(&policy, subject);
-                for key in [keys::weights("r"), keys::control("r"), keys::info("r"), format!("{}/r/**", keys::ROOT)] {
+                for key in [
+                    keys::weights("r"),
+                    keys::control("r"),
+                    keys::info("r"),
+                    keys::credit("r", 0),
+                    format!("{}/r/**", keys::ROOT),
+                ] {
                     assert!(!allows(&rules, "ingress", "put", &key), "{subject} may put {key}");
                     assert!(!allows(&rules, "ingress", "declare_queryable", &key), "{subject} may serve {key}");
                 }
@@ -213,6 +221,8 @@ mod tests {
             assert!(allows(&rules, "ingress", "declare_subscriber", &keys::weights("r")));
             assert!(allows(&rules, "ingress", "declare_subscriber", &keys::control("r")));
             assert!(allows(&rules, "egress", "put", &keys::weights("r")));
+            assert!(allows(&rules, "ingress", "declare_subscriber", &keys::credit("r", 3)));
+            assert!(allows(&rules, "egress", "put", &keys::credit("r", 3)));
             assert!(allows(&rules, "ingress", "query", &keys::info("*")));
             assert!(allows(&rules, "ingress", "query", &keys::info("r")));
             assert!(allows(&rules, "ingress", "query", &keys::weights("r")));

@@ -20,6 +20,7 @@ use tracing::{debug, info, warn};
 use zenoh::Wait;
 use zenoh::sample::SampleKind;
 
+use super::credit::CreditLedger;
 use super::{ServiceError, zenoh_error};
 
 /// Per-actor view, from its transitions and status reports.
@@ -37,6 +38,8 @@ pub struct ActorView {
     pub distance_ema: f32,
     pub return_ema: f32,
     pub gaps: u64,
+    /// Share of its last status interval the actor's batches waited for insert credit.
+    pub credit_wait_fraction: f32,
 }
 
 /// Which kind of node a liveliness token announces.
@@ -120,6 +123,13 @@ pub(super) struct Shared {
     pub(super) assigned: Mutex<BTreeMap<u32, Instant>>,
     /// Episodes not yet written to the metrics; bounded by [`MAX_PENDING_EPISODES`].
     pub(super) pending_episodes: Mutex<Vec<proto::EpisodeStats>>,
+    /// Transitions in the ingest queue, not yet in replay.
+    pub(super) queued_transitions: AtomicU64,
+    /// The rate limiter's insert headroom in transitions, as the training thread last saw it
+    /// (`rate.limit_inserts`; 0 until it has started).
+    pub(super) insert_headroom: AtomicU64,
+    /// Insert credit granted to each live actor (`rate.limit_inserts`).
+    pub(super) credits: Mutex<CreditLedger>,
 }
 
 impl Shared {
@@ -217,7 +227,7 @@ pub(super) async fn serve(
     };
     let transitions = session
         .declare_subscriber(keys::all_transitions(run_id))
-        .callback(ingest_callback(limits, ingest, Arc::clone(shared)))
+        .callback(ingest_callback(limits, config.rate.limit_inserts, ingest, Arc::clone(shared)))
         .await
         .map_err(zenoh_error("subscribing to transitions"))?;
     let stats = session
@@ -398,6 +408,7 @@ fn record_status(shared: &Shared, report: proto::ActorStatus) {
     view.env_steps = report.env_steps;
     view.env_steps_per_second = report.env_steps_per_second;
     view.epsilon = report.epsilon;
+    view.credit_wait_fraction = report.credit_wait_fraction;
 }
 
 fn record_episode(shared: &Shared, stats: proto::EpisodeStats) {
@@ -423,8 +434,11 @@ fn record_episode(shared: &Shared, stats: proto::EpisodeStats) {
     debug!(actor = stats.actor_id, speed = stats.speed, distance = stats.distance, epsilon = stats.epsilon, "episode");
 }
 
+/// Validates a transition batch, checks it against the actor's insert credit (when
+/// `limit_inserts`) and its sequence, and queues it for the training thread.
 fn ingest_callback(
     limits: TransitionLimits,
+    limit_inserts: bool,
     queue: SyncSender<proto::TransitionBatch>,
     shared: Arc<Shared>,
 ) -> impl Fn(zenoh::sample::Sample) + Send + Sync + 'static {
@@ -435,6 +449,12 @@ fn ingest_callback(
             Ok(batch) => batch,
             Err(e) => return count_rejection(&shared, &e),
         };
+        // Before the sequence check, so that a refused batch does not advance the
+        // acknowledgement its actor's next credit counts from.
+        if limit_inserts && !lock(&shared.credits).admits(batch.actor_id, batch.incarnation, batch.sequence) {
+            let error = proto::ProtoError::OverCredit { actor: batch.actor_id, sequence: batch.sequence };
+            return count_rejection(&shared, &error);
+        }
         let check = lock(&shared.sequences).check(batch.actor_id, batch.incarnation, batch.sequence);
         match check {
             Err(e) => return count_rejection(&shared, &e),
@@ -443,15 +463,22 @@ fn ingest_callback(
             }
             Ok(_) => {}
         }
+        // Counted before the send, so that the training thread never takes out more than
+        // went in.
+        let transitions = batch.len() as u64;
+        shared.queued_transitions.fetch_add(transitions, Ordering::Relaxed);
         match queue.try_send(batch) {
             Ok(()) => {}
             Err(TrySendError::Full(_)) => {
+                shared.queued_transitions.fetch_sub(transitions, Ordering::Relaxed);
                 let dropped = shared.dropped_batches.fetch_add(1, Ordering::Relaxed) + 1;
                 if dropped <= 3 || dropped.is_multiple_of(100) {
                     warn!(dropped, "ingest queue full: training is behind the actors; dropping a batch");
                 }
             }
-            Err(TrySendError::Disconnected(_)) => {}
+            Err(TrySendError::Disconnected(_)) => {
+                shared.queued_transitions.fetch_sub(transitions, Ordering::Relaxed);
+            }
         }
     }
 }

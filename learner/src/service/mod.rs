@@ -3,6 +3,7 @@
 //! - [`edge`]: every zenoh callback (validation, liveliness, run info, the weights
 //!   queryable), touching only small shared tables;
 //! - [`trainer`]: the training thread, which owns the DQN, replay and the rate limiter;
+//! - [`credit`]: insert credit, the rate limiter's hold on the actors (`rate.limit_inserts`);
 //! - [`telemetry`]: `status.json`, the status line and the metrics files;
 //! - [`access_control`]: the router's zenoh access-control policy, always on.
 //!
@@ -30,6 +31,7 @@ use crate::checkpoint::{Checkpoint, CheckpointError, Progress};
 
 pub mod access_control;
 mod best_keeper;
+mod credit;
 mod edge;
 mod telemetry;
 mod trainer;
@@ -111,6 +113,10 @@ pub async fn run(options: ServiceOptions, stop: Arc<AtomicBool>) -> Result<Outco
         .await
         .map_err(zenoh_error("declaring the weights publisher"))?;
 
+    let credits = config.rate.limit_inserts.then(|| {
+        let batch = credit_batch_transitions(&config);
+        tokio::spawn(publish_credits(session.clone(), run_id.clone(), Arc::clone(&shared), batch))
+    });
     // Training runs on its own thread; weights come back through a channel to be published.
     let (weights_tx, mut weights_rx) = tokio::sync::mpsc::channel::<Vec<u8>>(2);
     let trainer = {
@@ -130,9 +136,43 @@ pub async fn run(options: ServiceOptions, stop: Arc<AtomicBool>) -> Result<Outco
         }
     }
     let outcome = trainer.join().map_err(|_| ServiceError::TrainingThreadPanicked)??;
+    if let Some(credits) = credits {
+        credits.abort();
+    }
     broadcast_stop(&session, &run_id).await;
     let _ = session.close().await;
     Ok(outcome)
+}
+
+/// Transitions in each batch an actor publishes: whole steps of all its crawlers, the first
+/// that reach `actor.batch_transitions`.
+fn credit_batch_transitions(config: &TrainConfig) -> u64 {
+    let envs = config.actor.envs_per_actor.max(1) as u64;
+    (config.actor.batch_transitions as u64).div_ceil(envs) * envs
+}
+
+/// Hands out insert credit every [`credit::CREDIT_EVERY`] until aborted: the training
+/// thread's headroom shared among the live actors (`credit.rs`).
+async fn publish_credits(session: zenoh::Session, run_id: String, shared: Arc<edge::Shared>, batch: u64) {
+    use std::sync::atomic::Ordering;
+    let mut ticker = tokio::time::interval(credit::CREDIT_EVERY);
+    ticker.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
+    loop {
+        ticker.tick().await;
+        let live = shared.connected();
+        let sequences = edge::lock(&shared.sequences).clone();
+        let headroom = shared.insert_headroom.load(Ordering::Relaxed);
+        let due =
+            edge::lock(&shared.credits).due(&run_id, headroom, batch, &live, &sequences, std::time::Instant::now());
+        for credit in due {
+            let key = keys::credit(&run_id, credit.actor_id);
+            // Dropped rather than queued behind a slow link: the next refresh replaces it.
+            let put = session.put(key, credit.encode_to_vec()).congestion_control(CongestionControl::Drop);
+            if let Err(e) = put.await {
+                warn!("insert credit publish failed: {e}");
+            }
+        }
+    }
 }
 
 /// The embedded router: listening where the config says, bounded, with the access-control

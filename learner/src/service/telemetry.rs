@@ -39,6 +39,11 @@ pub struct Status {
     pub skipped_updates: u64,
     /// Liveliness tokens beyond `learner.max_actors`, ignored.
     pub ignored_tokens: u64,
+    /// Samples per insert realised since the warm-up (the rate limiter's own count).
+    pub samples_per_insert: Option<f64>,
+    /// Transitions the learner takes before inserts wait (`rate.limit_inserts`; absent when
+    /// only sampling is limited).
+    pub insert_headroom: Option<u64>,
     pub last_checkpoint: Option<String>,
     pub last_evaluation_speed: Option<f32>,
 }
@@ -50,6 +55,8 @@ pub(super) struct TrainingNow<'a> {
     pub replay_len: usize,
     pub train_seconds: f64,
     pub last_checkpoint: Option<&'a Path>,
+    pub samples_per_insert: Option<f64>,
+    pub insert_headroom: Option<u64>,
 }
 
 /// The training thread's reporting state: clocks, counters since the last report, and the
@@ -143,6 +150,8 @@ impl Telemetry {
             dropped_batches: shared.dropped_batches.load(Ordering::Relaxed),
             skipped_updates: shared.skipped_updates.load(Ordering::Relaxed),
             ignored_tokens: shared.ignored_tokens.load(Ordering::Relaxed),
+            samples_per_insert: now.samples_per_insert,
+            insert_headroom: now.insert_headroom,
             last_checkpoint: now.last_checkpoint.map(|p| p.display().to_string()),
             last_evaluation_speed: lock(&shared.evaluation).as_ref().map(|e| e.speed),
         }
@@ -234,6 +243,16 @@ fn write_status_metrics(metrics: &mut MetricsWriter, status: &Status, shared: &S
         ("progress/physics_steps", status.physics_steps as f64),
         ("progress/updates", status.updates as f64),
     ];
+    if let Some(ratio) = status.samples_per_insert {
+        scalars.push(("rate/samples_per_insert", ratio));
+    }
+    let waits: Vec<(String, f64)> = status
+        .actors
+        .iter()
+        .filter(|(id, _)| shared.may_tag(**id))
+        .map(|(id, view)| (format!("actor/{id}/credit_wait"), f64::from(view.credit_wait_fraction)))
+        .collect();
+    scalars.extend(waits.iter().map(|(t, v)| (t.as_str(), *v)));
     let ingest: Vec<(String, f64)> = status
         .ingest_per_second
         .iter()
@@ -253,11 +272,17 @@ fn report(status: &Status, run_dir: &Path) {
         .iter()
         .map(|(id, a)| {
             let rate = status.ingest_per_second.get(id).copied().unwrap_or(0.0);
-            format!("#{id} {rate:.0}/s ε={:.4} v{} {:.2} m/s", a.epsilon, a.weights_version, a.speed_ema)
+            let wait = if a.credit_wait_fraction > 0.0 {
+                format!(" waits {:.0}%", 100.0 * a.credit_wait_fraction)
+            } else {
+                String::new()
+            };
+            format!("#{id} {rate:.0}/s ε={:.4} v{} {:.2} m/s{wait}", a.epsilon, a.weights_version, a.speed_ema)
         })
         .collect();
+    let ratio = status.samples_per_insert.map_or_else(|| "-".to_string(), |r| format!("{r:.2}"));
     info!(
-        "updates {} ({:.0}/s) | env steps {} ({:.0}/s) | replay {} | weights v{} | loss {:.4} | connected {:?} | {}",
+        "updates {} ({:.0}/s) | env steps {} ({:.0}/s) | samples/insert {ratio} | replay {} | weights v{} | loss {:.4} | connected {:?} | {}",
         status.updates,
         status.updates_per_second,
         status.env_steps,

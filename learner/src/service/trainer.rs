@@ -59,6 +59,7 @@ pub(super) fn train(
         if let Some(stats) = trainer.learn_step() {
             trainer.after_update(&stats);
         }
+        trainer.share_insert_headroom();
         trainer.report();
     }
     trainer.finish()
@@ -185,6 +186,7 @@ impl<'a> Trainer<'a> {
         };
         let mut received = 0;
         while let Some(batch) = next.take() {
+            self.links.shared.queued_transitions.fetch_sub(batch.len() as u64, Ordering::Relaxed);
             received += insert_batch(&mut self.replay, &batch, self.links.shared);
             self.progress.env_steps += batch.len() as u64;
             self.progress.physics_steps += batch.physics_steps;
@@ -195,6 +197,14 @@ impl<'a> Trainer<'a> {
         }
         self.rate.record_insert(received, self.replay.len());
         true
+    }
+
+    /// Tells the credit publisher how many more transitions the rate limiter takes.
+    fn share_insert_headroom(&self) {
+        let queued = self.links.shared.queued_transitions.load(Ordering::Relaxed);
+        if let Some(headroom) = self.rate.insert_headroom(self.replay.len(), queued) {
+            self.links.shared.insert_headroom.store(headroom, Ordering::Relaxed);
+        }
     }
 
     /// The RL step: sample a minibatch (n-step returns, importance weights when
@@ -286,6 +296,10 @@ impl<'a> Trainer<'a> {
             replay_len: self.replay.len(),
             train_seconds: self.train_seconds(),
             last_checkpoint: self.last_checkpoint.as_deref(),
+            samples_per_insert: self.rate.realised_samples_per_insert(),
+            insert_headroom: self
+                .rate
+                .insert_headroom(self.replay.len(), self.links.shared.queued_transitions.load(Ordering::Relaxed)),
         };
         let every = self.config.learner.status_every_s;
         self.telemetry.tick(now, every, self.run_id, self.run_dir, self.links.shared);

@@ -147,3 +147,38 @@ fn an_actor_waiting_for_an_absent_learner_exits_on_sigterm() {
     };
     assert!(status.success(), "{status}");
 }
+
+/// Samples per insert, as the learner's status reports it, once both actors have reported
+/// and the learner has made `updates` updates.
+fn realised_ratio(limit_inserts: bool, updates: u64) -> (f64, serde_json::Value) {
+    let runs = tempfile::tempdir().unwrap();
+    let limit = format!("rate.limit_inserts={limit_inserts}");
+    // 64 samples per insert: two updates of 32 per transition, more than the learner can
+    // make at the rate two actors produce, so the learner is the slow side.
+    let mut learner = Learner::builder(runs.path(), "ratio")
+        .actors(2)
+        .args(&["--set", "rate.samples_per_insert=64.0", "--set", "rate.error_buffer=128.0", "--set", &limit])
+        .start();
+    let status = learner.wait_for(Duration::from_secs(180), "updates with both actors reporting", |s| {
+        u64_at(s, "/updates") >= updates && (0..2).all(|id| u64_at(s, &format!("/actors/{id}/env_steps")) > 0)
+    });
+    let exit = learner.terminate(Duration::from_secs(60));
+    assert!(exit.success(), "learner exit after SIGTERM: {exit}");
+    (status["samples_per_insert"].as_f64().unwrap(), status)
+}
+
+#[test]
+fn limited_inserts_hold_samples_per_insert_when_the_learner_is_the_slow_side() {
+    let (ratio, status) = realised_ratio(true, 6000);
+    assert!((ratio - 64.0).abs() <= 6.4, "realised samples per insert {ratio}, configured 64: {status:#}");
+    // The actors were held back, and said so; none sent past its credit.
+    let waits: Vec<f64> =
+        (0..2).map(|id| status["actors"][id.to_string()]["credit_wait_fraction"].as_f64().unwrap()).collect();
+    assert!(waits.iter().all(|&w| w > 0.2), "credit waits {waits:?}: {status:#}");
+    assert_eq!(status["rejected"].get("over_credit"), None, "{status:#}");
+    assert!(status["insert_headroom"].is_u64(), "{status:#}");
+    // With the sample side alone, the same actors push the ratio far below the setting.
+    let (ratio, status) = realised_ratio(false, 6000);
+    assert!(ratio < 32.0, "realised {ratio} without the insert limit: {status:#}");
+    assert!(status["insert_headroom"].is_null(), "{status:#}");
+}
