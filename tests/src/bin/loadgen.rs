@@ -12,6 +12,9 @@
 //!   ingest is compared with. Prints `{"messages", "bytes", "seconds"}` on stdout once S
 //!   seconds have passed since the first message.
 //!
+//! With `--tls-ca/--tls-cert/--tls-key` (before the mode) both ends speak mutual TLS: the
+//! sink listens with its certificate, the actors connect with theirs (deploy/make-tls.sh).
+//!
 //! Batches are encoded once: the part that differs per message (sequence, id) is a second
 //! protobuf encoding prepended to the shared body, which protobuf decoding merges (fields
 //! may come in any order; the body's `count`, the last field, stays last).
@@ -23,12 +26,15 @@ use std::time::{Duration, Instant};
 
 use anyhow::Context;
 use clap::{Parser, Subcommand};
+use crawler_cli::{TlsArgs, TlsSide};
 use crawler_proto::{self as proto, PROTOCOL_VERSION, keys};
 use prost::Message;
 use zenoh::qos::CongestionControl;
 
 #[derive(Debug, Parser)]
 struct Args {
+    #[command(flatten)]
+    tls: TlsArgs,
     #[command(subcommand)]
     mode: Mode,
 }
@@ -70,6 +76,13 @@ enum Mode {
 fn main() -> anyhow::Result<()> {
     crawler_cli::init_logging();
     let args = Args::parse();
+    // As the actor and learner do, before any thread exists.
+    let endpoint = match &args.mode {
+        Mode::Actors { connect, .. } => connect.clone(),
+        Mode::Sink { listen, .. } => listen.clone(),
+    };
+    crawler_cli::serialize_tls_link_io(&[endpoint]);
+    let tls = args.tls.files()?;
     let runtime = tokio::runtime::Builder::new_multi_thread()
         .worker_threads(2)
         .enable_all()
@@ -79,9 +92,13 @@ fn main() -> anyhow::Result<()> {
         match args.mode {
             Mode::Actors { connect, run, actors, rate, batch, envs, seconds, credit } => {
                 let plan = Plan { run, rate, batch, envs, duration: Duration::from_secs_f64(seconds), credit };
-                actors_mode(&connect, actors, plan).await
+                let overrides = tls.map(|t| t.zenoh_settings(TlsSide::Connect)).unwrap_or_default();
+                actors_mode(&connect, &overrides, actors, plan).await
             }
-            Mode::Sink { listen, seconds } => sink(&listen, Duration::from_secs_f64(seconds)).await,
+            Mode::Sink { listen, seconds } => {
+                let overrides = tls.map(|t| t.zenoh_settings(TlsSide::Listen)).unwrap_or_default();
+                sink(&listen, &overrides, Duration::from_secs_f64(seconds)).await
+            }
         }
     })?;
     writeln!(std::io::stdout(), "{report}").context("writing stdout")?;
@@ -103,12 +120,17 @@ struct Plan {
     credit: bool,
 }
 
-async fn actors_mode(connect: &str, actors: u32, plan: Plan) -> anyhow::Result<serde_json::Value> {
+async fn actors_mode(
+    connect: &str,
+    overrides: &[(String, String)],
+    actors: u32,
+    plan: Plan,
+) -> anyhow::Result<serde_json::Value> {
     let body = Arc::new(batch_body(plan.batch, plan.envs));
     let batches = Arc::new(AtomicU64::new(0));
     let mut tasks = Vec::new();
     for id in 0..actors {
-        let config = crawler_actor::node::client_config(&[connect.to_string()], &[])?;
+        let config = crawler_actor::node::client_config(&[connect.to_string()], overrides)?;
         let session = zenoh::open(config).await.map_err(err("opening a session"))?;
         let (plan, body, batches) = (plan.clone(), Arc::clone(&body), Arc::clone(&batches));
         tasks.push(tokio::spawn(async move { actor(session, id, plan, &body, &batches).await }));
@@ -207,7 +229,7 @@ fn batch_head(run: &str, id: u32, incarnation: u64, sequence: u64) -> Vec<u8> {
 }
 
 /// A router counting every transitions message of any run, until `duration` after the first.
-async fn sink(listen: &str, duration: Duration) -> anyhow::Result<serde_json::Value> {
+async fn sink(listen: &str, overrides: &[(String, String)], duration: Duration) -> anyhow::Result<serde_json::Value> {
     let mut config = zenoh::Config::default();
     let settings = [
         ("mode", "\"router\"".to_string()),
@@ -216,8 +238,9 @@ async fn sink(listen: &str, duration: Duration) -> anyhow::Result<serde_json::Va
         ("transport/link/rx/max_message_size", proto::TRANSPORT_MAX_MESSAGE_BYTES.to_string()),
         ("transport/unicast/max_sessions", "1000".to_string()),
     ];
+    let settings = settings.into_iter().map(|(k, v)| (k.to_string(), v)).chain(overrides.iter().cloned());
     for (key, value) in settings {
-        config.insert_json5(key, &value).map_err(|e| anyhow::anyhow!("setting {key}: {e}"))?;
+        config.insert_json5(&key, &value).map_err(|e| anyhow::anyhow!("setting {key}: {e}"))?;
     }
     let session = zenoh::open(config).await.map_err(err("opening the router"))?;
     let counts = Arc::new((AtomicU64::new(0), AtomicU64::new(0)));

@@ -118,13 +118,13 @@ impl Drop for Compose {
     }
 }
 
-fn docker(args: &[&str]) -> String {
+pub(crate) fn docker(args: &[&str]) -> String {
     let output = Command::new("docker").args(args).output().unwrap();
     assert!(output.status.success(), "docker {args:?}: {}", String::from_utf8_lossy(&output.stderr));
     String::from_utf8_lossy(&output.stdout).into_owned()
 }
 
-fn assert_docker_ready() {
+pub(crate) fn assert_docker_ready() {
     let engine = Command::new("docker").arg("info").output();
     assert!(
         engine.is_ok_and(|o| o.status.success()),
@@ -137,7 +137,7 @@ fn assert_docker_ready() {
 }
 
 /// Waits for the learner container's health check to pass.
-fn wait_healthy(container: &str, timeout: Duration) {
+pub(crate) fn wait_healthy(container: &str, timeout: Duration) {
     let start = std::time::Instant::now();
     loop {
         let health = docker(&["inspect", "--format", "{{.State.Health.Status}}", container]);

@@ -4,11 +4,12 @@
 //! - [`faults`]: SIGKILL of actors and learners, a kill inside a checkpoint write, garbage;
 //! - [`outputs`]: metrics files, plots, the GIF, eval, transfer, the MuJoCo cross-check;
 //! - [`security`]: mutual TLS and the access-control policy under attack;
-//! - [`docker`]: the compose deployments (`#[ignore]`d; scripts/test runs them where an
-//!   engine answers, with `-- --ignored docker::`).
+//! - [`docker`]: the compose deployments, and [`swarm`]: the Swarm stack (`#[ignore]`d;
+//!   scripts/test runs them where an engine answers, with `-- --ignored docker:: swarm::`).
 
 mod distributed;
 mod docker;
 mod faults;
 mod outputs;
 mod security;
+mod swarm;
