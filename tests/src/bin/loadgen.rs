@@ -1,7 +1,7 @@
 //! `loadgen`: many simulated actors in one process, for the scale bench
 //! (`tests/benches/scale.rs`). Two modes:
 //!
-//! - `actors --connect ENDPOINT --run RUN --actors N --rate T --seconds S`: N zenoh client
+//! - `actors --connect ENDPOINT --run RUN --actors N [--first-id I] --rate T --seconds S`: N zenoh client
 //!   sessions, each an actor as the learner sees one: a liveliness token under its id and a
 //!   transitions publisher (reliable, congestion control *Block*, as real actors publish)
 //!   putting valid, pre-encoded batches at T transitions/s (0: as fast as the link takes
@@ -47,9 +47,11 @@ enum Mode {
         connect: String,
         #[arg(long)]
         run: String,
-        /// Simulated actors, ids 0..N.
+        /// Simulated actors, ids FIRST_ID..FIRST_ID+N.
         #[arg(long)]
         actors: u32,
+        #[arg(long, default_value_t = 0)]
+        first_id: u32,
         /// Transitions per second each actor offers; 0: as fast as the link takes them.
         #[arg(long, default_value_t = 2000.0)]
         rate: f64,
@@ -90,10 +92,10 @@ fn main() -> anyhow::Result<()> {
         .context("starting the async runtime")?;
     let report = runtime.block_on(async {
         match args.mode {
-            Mode::Actors { connect, run, actors, rate, batch, envs, seconds, credit } => {
+            Mode::Actors { connect, run, actors, first_id, rate, batch, envs, seconds, credit } => {
                 let plan = Plan { run, rate, batch, envs, duration: Duration::from_secs_f64(seconds), credit };
                 let overrides = tls.map(|t| t.zenoh_settings(TlsSide::Connect)).unwrap_or_default();
-                actors_mode(&connect, &overrides, actors, plan).await
+                actors_mode(&connect, &overrides, first_id..first_id.saturating_add(actors), plan).await
             }
             Mode::Sink { listen, seconds } => {
                 let overrides = tls.map(|t| t.zenoh_settings(TlsSide::Listen)).unwrap_or_default();
@@ -123,13 +125,14 @@ struct Plan {
 async fn actors_mode(
     connect: &str,
     overrides: &[(String, String)],
-    actors: u32,
+    ids: std::ops::Range<u32>,
     plan: Plan,
 ) -> anyhow::Result<serde_json::Value> {
+    let actors = ids.len();
     let body = Arc::new(batch_body(plan.batch, plan.envs));
     let batches = Arc::new(AtomicU64::new(0));
     let mut tasks = Vec::new();
-    for id in 0..actors {
+    for id in ids {
         let config = crawler_actor::node::client_config(&[connect.to_string()], overrides)?;
         let session = zenoh::open(config).await.map_err(err("opening a session"))?;
         let (plan, body, batches) = (plan.clone(), Arc::clone(&body), Arc::clone(&batches));

@@ -182,3 +182,34 @@ fn limited_inserts_hold_samples_per_insert_when_the_learner_is_the_slow_side() {
     assert!(ratio < 32.0, "realised {ratio} without the insert limit: {status:#}");
     assert!(status["insert_headroom"].is_null(), "{status:#}");
 }
+
+#[test]
+fn an_actor_that_ignores_its_insert_credit_is_refused_past_it() {
+    let runs = tempfile::tempdir().unwrap();
+    // One genuine actor, and the learner the slow side (64 samples per insert).
+    let mut learner = Learner::builder(runs.path(), "greedy")
+        .actors(1)
+        .args(&["--set", "rate.samples_per_insert=64.0", "--set", "rate.error_buffer=128.0"])
+        .start();
+    learner.wait_for(Duration::from_secs(120), "training", |s| u64_at(s, "/updates") > 100);
+    // A simulated actor (id 5) that publishes as fast as the link takes, credit or not.
+    let endpoint = format!("tcp/127.0.0.1:{}", learner.port);
+    let output = Command::new(binary("loadgen"))
+        .args(["actors", "--connect", &endpoint, "--run", "greedy", "--actors", "1", "--first-id", "5", "--rate", "0"])
+        .args(["--batch", "64", "--envs", "2", "--seconds", "4"])
+        .env("RUST_LOG", "warn,zenoh=error")
+        .output()
+        .unwrap();
+    assert!(output.status.success(), "{}", String::from_utf8_lossy(&output.stderr));
+    let offered: serde_json::Value = serde_json::from_slice(&output.stdout).unwrap();
+    let status = learner.wait_for(Duration::from_secs(30), "the flood counted", |s| {
+        u64_at(s, "/rejected/over_credit") > 0 && u64_at(s, "/updates") > 2000
+    });
+    // Nearly everything it sent past its window was refused, and the ratio held.
+    let refused = u64_at(&status, "/rejected/over_credit");
+    assert!(refused * 2 > u64_at(&offered, "/batches"), "refused {refused} of {offered}: {status:#}");
+    let ratio = status["samples_per_insert"].as_f64().unwrap();
+    assert!((ratio - 64.0).abs() <= 6.4, "realised samples per insert {ratio}: {status:#}");
+    let exit = learner.terminate(Duration::from_secs(60));
+    assert!(exit.success(), "{exit}");
+}
