@@ -126,6 +126,22 @@ struct Counters {
     physics_steps: AtomicU64,
     weights_version: AtomicU64,
     epsilon_bits: AtomicU64,
+    /// Nanoseconds the simulation spent waiting to hand over a message.
+    waiting_nanos: AtomicU64,
+}
+
+/// Hands `message` to the publisher, counting the time the simulation waits for room (the
+/// learner's insert credit, or a slow link); false once the publisher has gone.
+fn hand_over(out: &mpsc::Sender<Outgoing>, message: Outgoing, counters: &Counters) -> bool {
+    let message = match out.try_send(message) {
+        Ok(()) => return true,
+        Err(mpsc::error::TrySendError::Closed(_)) => return false,
+        Err(mpsc::error::TrySendError::Full(message)) => message,
+    };
+    let start = Instant::now();
+    let sent = out.blocking_send(message).is_ok();
+    counters.waiting_nanos.fetch_add(start.elapsed().as_nanos() as u64, Ordering::Relaxed);
+    sent
 }
 
 /// Runs an actor until the learner says stop, `stop` is set, or `max_steps` is reached.
@@ -141,19 +157,17 @@ pub async fn run(mut options: ActorOptions, stop: Arc<AtomicBool>) -> Result<(),
     info!(run = %run_id, id, envs = settings.envs_per_actor, evaluator = options.evaluator, "joined run");
 
     let (weights, policy_rx) = WeightsFeed::new(&run_id, settings.env.policy_input_dim(), settings.env.num_actions());
+    // Evaluators publish no transitions, so they need no credit.
     let (credit_tx, credit_rx) = watch::channel(None);
-    let _credit = if settings.insert_credit && !options.evaluator {
-        Some(subscribe_credit(&session, &run_id, id, credit_tx).await?)
-    } else {
-        None
-    };
+    let _credit =
+        if options.evaluator { None } else { Some(subscribe_credit(&session, &run_id, id, credit_tx).await?) };
     let _subscriptions = subscribe(&session, &run_id, &weights, &stop, id, options.evaluator).await?;
     weights.wait_for_first(&session, &policy_rx, &stop).await;
     let publishers = Publishers::declare(&session, &run_id, id).await?;
     // Distinct per process: start time mixed with the process id.
     let started = std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).map_or(0, |d| d.as_nanos() as u64);
     let incarnation = (started ^ (u64::from(std::process::id()) << 40)).max(1);
-    let gate = (settings.insert_credit && !options.evaluator).then(|| CreditGate::new(incarnation, credit_rx));
+    let gate = (!options.evaluator).then(|| CreditGate::new(incarnation, credit_rx));
 
     let counters = Arc::new(Counters::default());
     let (out_tx, out_rx) = mpsc::channel::<Outgoing>(8);
@@ -373,6 +387,9 @@ impl CreditGate {
     }
 }
 
+/// How long a batch waits for insert credit before the actor says so in its log.
+const CREDIT_QUIET: Duration = Duration::from_secs(10);
+
 /// Resolves when the gate sees a new credit; never without a gate.
 async fn credit_changed(gate: Option<&mut CreditGate>) {
     match gate {
@@ -406,9 +423,10 @@ impl Publishers {
         })
     }
 
-    /// Publishes what the simulation sends until it ends or `stop` is set, and a status
-    /// report every `status_interval_s`. With a credit gate, a batch the learner's credit
-    /// does not admit yet waits for one that does, and so does everything behind it.
+    /// Publishes what the simulation sends until it ends, and a status report every
+    /// `status_interval_s`. With a credit gate, a batch the learner's credit does not admit
+    /// yet waits for one that does, and so does everything behind it (the simulation then
+    /// waits too, once the channel is full); `stop` ends such a wait.
     async fn forward(
         &self,
         mut out_rx: mpsc::Receiver<Outgoing>,
@@ -417,9 +435,9 @@ impl Publishers {
         stop: &AtomicBool,
     ) {
         let mut ticker = tokio::time::interval(Duration::from_secs_f64(reporter.settings.status_interval_s));
-        let mut last = (0u64, Instant::now());
-        let mut waiting: Option<(proto::TransitionBatch, Instant)> = None;
-        let mut waited = Duration::ZERO;
+        let mut last = (0u64, reporter.counters.waiting_nanos.load(Ordering::Relaxed), Instant::now());
+        let mut waiting: Option<proto::TransitionBatch> = None;
+        let mut announced = Instant::now();
         loop {
             tokio::select! {
                 message = out_rx.recv(), if waiting.is_none() => {
@@ -429,32 +447,34 @@ impl Publishers {
                             if gate.as_mut().is_none_or(|gate| gate.admit(batch.sequence)) {
                                 self.publish(&self.transitions, batch.encode_to_vec()).await;
                             } else {
-                                waiting = Some((batch, Instant::now()));
+                                waiting = Some(batch);
+                                announced = Instant::now();
                             }
                         }
                         Outgoing::Stats(episode) => self.publish(&self.stats, episode.encode_to_vec()).await,
                     }
                 }
                 () = credit_changed(gate.as_mut()), if waiting.is_some() => {
-                    if let (Some(gate), Some((batch, _))) = (gate.as_mut(), waiting.as_ref())
+                    if let (Some(gate), Some(batch)) = (gate.as_mut(), waiting.as_ref())
                         && gate.admit(batch.sequence)
-                        && let Some((batch, since)) = waiting.take()
+                        && let Some(batch) = waiting.take()
                     {
-                        waited += since.elapsed();
                         self.publish(&self.transitions, batch.encode_to_vec()).await;
                     }
                 }
                 _ = ticker.tick() => {
-                    // The wait so far of a batch still waiting counts in this report.
-                    let now = Instant::now();
-                    if let Some((_, since)) = waiting.as_mut() {
-                        waited += now.duration_since(*since);
-                        *since = now;
-                    }
-                    let report = reporter.report(&mut last, std::mem::take(&mut waited));
+                    let report = reporter.report(&mut last);
                     let _ = self.status.put(report.encode_to_vec()).await;
+                    if waiting.is_some() && announced.elapsed() > CREDIT_QUIET {
+                        info!(
+                            "no insert credit from the learner for {} s: it is busy, or holds learner.max_actors \
+                             actors already (its status.json counts ignored_tokens)",
+                            CREDIT_QUIET.as_secs()
+                        );
+                        announced = Instant::now();
+                    }
                 }
-                () = stopped(stop) => break,
+                () = stopped(stop), if waiting.is_some() => break,
             }
         }
     }
@@ -477,15 +497,16 @@ struct StatusReporter<'a> {
 }
 
 impl StatusReporter<'_> {
-    /// The report since `last` (steps, time), which it advances, with the time batches
-    /// `waited` for insert credit meanwhile; touches the heartbeat file.
-    fn report(&mut self, last: &mut (u64, Instant), waited: Duration) -> proto::ActorStatus {
+    /// The report since `last` (steps, nanoseconds waited, time), which it advances;
+    /// touches the heartbeat file.
+    fn report(&mut self, last: &mut (u64, u64, Instant)) -> proto::ActorStatus {
         let counters = self.counters;
         let steps = counters.env_steps.load(Ordering::Relaxed);
-        let seconds = last.1.elapsed().as_secs_f64().max(1e-9);
+        let waited = counters.waiting_nanos.load(Ordering::Relaxed);
+        let seconds = last.2.elapsed().as_secs_f64().max(1e-9);
         let rate = (steps - last.0) as f64 / seconds;
-        let credit_wait_fraction = (waited.as_secs_f64() / seconds).clamp(0.0, 1.0) as f32;
-        *last = (steps, Instant::now());
+        let waiting_fraction = ((waited - last.1) as f64 * 1e-9 / seconds).clamp(0.0, 1.0) as f32;
+        *last = (steps, waited, Instant::now());
         let report = proto::ActorStatus {
             protocol_version: PROTOCOL_VERSION,
             run_id: self.run_id.to_string(),
@@ -497,7 +518,7 @@ impl StatusReporter<'_> {
             epsilon: f64::from_bits(counters.epsilon_bits.load(Ordering::Relaxed)),
             num_envs: self.settings.envs_per_actor as u32,
             evaluator: self.options.evaluator,
-            credit_wait_fraction,
+            waiting_fraction,
         };
         if let Some(path) = &self.options.heartbeat
             && let Err(e) = std::fs::write(path, steps.to_string())
@@ -509,7 +530,7 @@ impl StatusReporter<'_> {
             steps_per_s = format!("{rate:.0}"),
             weights = report.weights_version,
             epsilon = format!("{:.4}", report.epsilon),
-            credit_wait = format!("{:.2}", report.credit_wait_fraction),
+            waiting = format!("{:.2}", report.waiting_fraction),
             "actor status"
         );
         report
@@ -651,7 +672,7 @@ fn simulate(
                 batch.count = batch.len() as u32;
                 let full = std::mem::replace(&mut batch, new_batch(run_id, id, incarnation, input_dim));
                 batch.sequence = full.sequence + 1;
-                if out.blocking_send(Outgoing::Batch(full)).is_err() {
+                if !hand_over(out, Outgoing::Batch(full), counters) {
                     return;
                 }
             }
@@ -665,7 +686,7 @@ fn simulate(
                 weights_version: policy.version,
             }
             .stats(&summary);
-            if out.blocking_send(Outgoing::Stats(stats)).is_err() {
+            if !hand_over(out, Outgoing::Stats(stats), counters) {
                 return;
             }
         }

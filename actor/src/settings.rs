@@ -85,9 +85,6 @@ pub struct ActorSettings {
     pub seed: u64,
     /// Seconds between status reports.
     pub status_interval_s: f64,
-    /// Publish a transition batch only within the learner's insert credit
-    /// (`proto::InsertCredit`): the learner's `rate.limit_inserts`.
-    pub insert_credit: bool,
 }
 
 impl Default for ActorSettings {
@@ -99,7 +96,6 @@ impl Default for ActorSettings {
             exploration: Exploration::default(),
             seed: 0,
             status_interval_s: 2.0,
-            insert_credit: false,
         }
     }
 }
@@ -302,7 +298,6 @@ impl From<&ActorSettings> for proto::ActorSettings {
             exploration: Some(exploration),
             seed: settings.seed,
             status_interval_s: settings.status_interval_s,
-            insert_credit: settings.insert_credit,
         }
     }
 }
@@ -329,7 +324,6 @@ impl TryFrom<&proto::ActorSettings> for ActorSettings {
             exploration,
             seed: wire.seed,
             status_interval_s: wire.status_interval_s,
-            insert_credit: wire.insert_credit,
         };
         settings.validate()?;
         Ok(settings)

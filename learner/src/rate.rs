@@ -4,10 +4,10 @@
 //! bursting through a backlog after a restart. With `rate.limit_inserts` it limits the other
 //! side too: [`RateLimiter::insert_headroom`] is how many more transitions the learner takes
 //! before samples per insert would leave its band, which the learner hands out to actors as
-//! insert credit (`service/credit.rs`). Both sides then hold
-//! `samples_per_insert · inserted − sampled` within `[batch − error_buffer, error_buffer]`
-//! after the warm-up, whichever side is slower, so the data-to-update ratio a preset was
-//! tuned at holds on any machine.
+//! insert credit (`service/credit.rs`). After the warm-up, sampling keeps
+//! `samples_per_insert · inserted − sampled` at or above `−error_buffer` and the credit stops
+//! once it reaches `error_buffer` (past it only what was already granted arrives), so the
+//! data-to-update ratio a preset was tuned at holds on any machine, whichever side is slower.
 
 pub use crawler_run::config::RateConfig;
 

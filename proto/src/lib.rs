@@ -46,9 +46,9 @@ pub use validate::{ProtoError, SequenceTracker, TransitionLimits};
 /// 13: the env settings carry how the base–link 1 contact pair acts on the shoulder
 ///    (`EnvSettings.shoulder_pair`); an older actor would simulate the viscous stand-in
 ///    whatever the learner's config says.
-/// 14: the learner may limit inserts (`ActorSettings.insert_credit`) with per-actor credits
-///    (`InsertCredit` on `crawler/<run>/credit/<id>`), and actors report the time they waited
-///    for credit (`ActorStatus.credit_wait_fraction`); an older actor would ignore the limit.
+/// 14: actors publish transitions only within the learner's insert credit (`InsertCredit` on
+///    `crawler/<run>/credit/<id>`) and report the time they waited
+///    (`ActorStatus.waiting_fraction`); an older actor would ignore the learner's limit.
 pub const PROTOCOL_VERSION: u32 = 14;
 
 /// Largest encoded message a node accepts, in bytes. The largest legal messages: the weights

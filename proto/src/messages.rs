@@ -316,10 +316,6 @@ pub struct ActorSettings {
     pub seed: u64,
     #[prost(double, tag = "7")]
     pub status_interval_s: f64,
-    /// Whether the learner limits inserts with [`InsertCredit`]: an actor then publishes a
-    /// transition batch only within the window its credit grants.
-    #[prost(bool, tag = "8")]
-    pub insert_credit: bool,
 }
 
 /// One finished episode.
@@ -394,13 +390,15 @@ pub struct ActorStatus {
     pub num_envs: u32,
     #[prost(bool, tag = "10")]
     pub evaluator: bool,
-    /// Share of the time since the previous report during which a finished transition batch
-    /// waited for the learner's insert credit (0 when inserts are not limited).
+    /// Share of the time since the previous report the simulation spent waiting to hand
+    /// over a message: for the learner's insert credit, or for a slow link.
     #[prost(float, tag = "11")]
-    pub credit_wait_fraction: f32,
+    pub waiting_fraction: f32,
 }
 
-/// The learner's grant to one actor: which transition batches it may publish next.
+/// The learner's grant to one actor: which transition batches it may publish next. Actors
+/// publish a transition batch only within their credit; a learner that does not limit
+/// inserts grants a window of `u32::MAX`.
 ///
 /// Flow control as in TCP: an acknowledgement and a window. The learner has received the
 /// batches of actor process `incarnation` up to `next_sequence` (exclusive) and admits

@@ -337,7 +337,7 @@ pub fn actor_status(bytes: &[u8], run_id: &str) -> Result<ActorStatus, ProtoErro
     use report_limits::*;
     finite("env_steps_per_second", &[status.env_steps_per_second])?;
     within("env_steps_per_second", &[status.env_steps_per_second], 0.0, MAX_STEPS_PER_SECOND)?;
-    probability("credit_wait_fraction", f64::from(status.credit_wait_fraction))?;
+    probability("waiting_fraction", f64::from(status.waiting_fraction))?;
     if status.num_envs > MAX_ENVS {
         return Err(ProtoError::OutOfRange {
             field: "num_envs",

@@ -8,7 +8,8 @@
 //! actors (the learner the fast side, then the slow one) in both modes for 3 minutes.
 //! Printed per case, from the learner's last status: the configured and the realised samples
 //! per insert (counted by the rate limiter from the warm-up on) and their ratio, updates/s,
-//! env steps/s, and the actors' mean share of time spent waiting for insert credit.
+//! env steps/s, and the actors' mean share of time spent waiting to hand over their data
+//! (for insert credit, or a slow link).
 #![allow(clippy::print_stdout, clippy::unwrap_used)]
 
 use std::time::{Duration, Instant};
@@ -56,7 +57,7 @@ fn main() {
     println!("== rate control, {} cores, {cpu}", std::thread::available_parallelism().map_or(0, |n| n.get()));
     println!(
         "{:>8} {:>6} {:>8} {:>6} {:>10} {:>9} {:>8} {:>9} {:>10} {:>10}",
-        "preset", "actors", "mode", "s", "configured", "realised", "ratio", "updates/s", "env st/s", "credit wait"
+        "preset", "actors", "mode", "s", "configured", "realised", "ratio", "updates/s", "env st/s", "waiting"
     );
     for case in cases {
         let config = format!("configs/{}.toml", case.preset);
@@ -69,7 +70,7 @@ fn main() {
         let mut learner = Learner::builder(runs.path(), "rate")
             .config(&config)
             .actors(case.actors)
-            .args(&["--set", &limit, "--set", "learner.status_every_s=5.0", "--set", "learner.checkpoint_every=0"])
+            .args(&["--set", &limit, "--set", "learner.status_every_s=5.0"])
             .start();
         let start = Instant::now();
         learner.wait_for(Duration::from_secs(120), "training to start", |s| u64_at(s, "/updates") > 0);
@@ -82,7 +83,7 @@ fn main() {
         let realised = last["samples_per_insert"].as_f64().unwrap_or(f64::NAN);
         let waits: Vec<f64> = last["actors"]
             .as_object()
-            .map(|a| a.values().filter_map(|v| v["credit_wait_fraction"].as_f64()).collect())
+            .map(|a| a.values().filter_map(|v| v["waiting_fraction"].as_f64()).collect())
             .unwrap_or_default();
         let wait = waits.iter().sum::<f64>() / waits.len().max(1) as f64;
         println!(

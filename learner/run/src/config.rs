@@ -470,12 +470,14 @@ impl TrainConfig {
                 "false when rate.samples_per_insert = 0 (no ratio to hold)",
             ));
         }
-        // The band must hold one minibatch, or neither side could move.
-        if r.limit_inserts && r.error_buffer < d.batch_size as f64 {
+        // The band must hold a minibatch and a transition's worth of samples, or both sides
+        // could wait for each other: sampling below `batch_size − error_buffer`, inserting
+        // above `error_buffer − samples_per_insert`.
+        if r.limit_inserts && r.error_buffer < d.batch_size as f64 + r.samples_per_insert {
             return Err(invalid(
                 "rate.error_buffer",
                 r.error_buffer.to_string(),
-                "at least dqn.batch_size when rate.limit_inserts is on",
+                "at least dqn.batch_size + rate.samples_per_insert when rate.limit_inserts is on",
             ));
         }
         if r.warmup < d.batch_size || r.warmup > self.replay.capacity {
@@ -567,7 +569,6 @@ impl TrainConfig {
             exploration: self.exploration.clone(),
             seed: self.actor.seed,
             status_interval_s: self.actor.status_interval_s,
-            insert_credit: self.rate.limit_inserts,
         }
     }
 }

@@ -1,19 +1,23 @@
-//! Insert credit: the learner's half of rate limiting on the insert side (`rate.limit_inserts`).
+//! Insert credit: the learner's hold on its actors, the insert side of rate limiting.
 //!
 //! zenoh's reliable transport pushes back only when a link's buffers are full, which says
 //! nothing about how fast the learner learns. So the learner tells each actor, on
 //! `crawler/<run>/credit/<id>`, which of its batches it may publish next
 //! (`proto::InsertCredit`: an acknowledgement and a window, as in TCP), and actors wait for
-//! it. The windows share out the rate limiter's insert headroom
+//! it. With `rate.limit_inserts` the windows share out what the rate limiter still takes
 //! (`RateLimiter::insert_headroom`) among the live actors, each at least one batch whenever
-//! there is any headroom at all, so no actor starves and the overshoot past the band is at
-//! most one batch per actor.
+//! there is any room at all, so no actor starves; without it every window is `u32::MAX`, so
+//! the mode can change on a resume without leaving actors waiting.
 //!
-//! The training thread writes the headroom into [`Shared`]; a task of the learner process
-//! turns it into credits every [`CREDIT_EVERY`] and publishes those that changed, and every
-//! credit again after [`CREDIT_REFRESH`] (credits go out with congestion control *Drop*, so a
-//! lost one is replaced). The edge refuses a batch past the window it was granted
-//! (`over_credit`), so an actor that ignores its credit cannot push the ratio down.
+//! The training thread writes an absolute limit into [`Shared`](super::edge::Shared): the
+//! transitions admitted so far plus its headroom. A task of the learner process turns what
+//! is left of it into credits every [`CREDIT_EVERY`] and publishes those that changed, and
+//! every credit again after [`CREDIT_REFRESH`] (credits go out with congestion control
+//! *Drop*, so a lost one is replaced). Because the limit is absolute, a stalled training
+//! thread stops the credit once its headroom is used, rather than granting it again every
+//! round. The edge refuses a batch past the window its process was granted (`over_credit`);
+//! a process the learner has not heard of yet may introduce itself with one batch per
+//! [`CREDIT_REFRESH`] and actor id, so that restarting under new incarnations gains nothing.
 
 use std::collections::{BTreeMap, BTreeSet};
 use std::time::{Duration, Instant};
@@ -23,37 +27,50 @@ use crawler_proto::{self as proto, PROTOCOL_VERSION, SequenceTracker};
 /// How often credits are worked out.
 pub(super) const CREDIT_EVERY: Duration = Duration::from_millis(10);
 
-/// An unchanged credit is sent again after this long.
+/// An unchanged credit is sent again after this long; an actor id may introduce a new process
+/// once in this long.
 pub(super) const CREDIT_REFRESH: Duration = Duration::from_millis(250);
 
-/// What the learner has granted: the credit each live actor was last sent, and the largest
-/// sequence limit granted to each actor process, against which the edge checks batches.
-/// Holds live actors only.
+/// What the learner has granted: the credit each live actor was last sent, the largest
+/// sequence limit granted to each actor process, against which the edge checks batches, and
+/// when each id last introduced a process. Holds live actors only.
 #[derive(Debug, Default)]
 pub(super) struct CreditLedger {
     sent: BTreeMap<u32, (proto::InsertCredit, Instant)>,
     /// Actor id → (incarnation, first sequence not granted).
     granted: BTreeMap<u32, (u64, u64)>,
+    introduced: BTreeMap<u32, Instant>,
 }
 
 impl CreditLedger {
-    /// Whether a batch of `incarnation` numbered `sequence` lies within what was granted. A
-    /// process the learner has granted nothing yet (its first batch) is admitted: that batch
-    /// is how the learner learns of it.
-    pub(super) fn admits(&self, actor: u32, incarnation: u64, sequence: u64) -> bool {
-        match self.granted.get(&actor) {
-            Some(&(granted_incarnation, limit)) if granted_incarnation == incarnation => sequence < limit,
-            _ => true,
+    /// Whether a batch of `incarnation` numbered `sequence` lies within what was granted.
+    /// A process that was granted nothing yet may introduce itself with one batch, when its
+    /// id's credit has room and the id has not introduced another process in the last
+    /// [`CREDIT_REFRESH`]: that batch is how the learner learns of it.
+    pub(super) fn admit(&mut self, actor: u32, incarnation: u64, sequence: u64, now: Instant) -> bool {
+        if let Some(&(granted_incarnation, limit)) = self.granted.get(&actor)
+            && granted_incarnation == incarnation
+        {
+            return sequence < limit;
+        }
+        let room = self.sent.get(&actor).is_some_and(|(credit, _)| credit.window > 0);
+        let recent = self.introduced.get(&actor).is_some_and(|at| now.duration_since(*at) < CREDIT_REFRESH);
+        if room && !recent {
+            self.introduced.insert(actor, now);
+            true
+        } else {
+            false
         }
     }
 
-    /// The credits due now: each live actor's share of `headroom` transitions, in batches of
-    /// `batch_transitions`, from what `sequences` says was accepted. A credit goes out when it
-    /// changed or after [`CREDIT_REFRESH`]. Forgets actors that are no longer live.
+    /// The credits due now: `room` transitions shared among the live actors in batches of
+    /// `batch_transitions`, each window counted from what `sequences` says was accepted. A
+    /// credit goes out when it changed or after [`CREDIT_REFRESH`]. Forgets actors that are
+    /// no longer live.
     pub(super) fn due(
         &mut self,
         run_id: &str,
-        headroom: u64,
+        room: u64,
         batch_transitions: u64,
         live: &BTreeSet<u32>,
         sequences: &SequenceTracker,
@@ -61,10 +78,12 @@ impl CreditLedger {
     ) -> Vec<proto::InsertCredit> {
         self.sent.retain(|id, _| live.contains(id));
         self.granted.retain(|id, _| live.contains(id));
-        let window = window(headroom, batch_transitions, live.len());
+        self.introduced.retain(|id, _| live.contains(id));
+        let window = window(room, batch_transitions, live.len());
         let mut due = Vec::new();
         for &actor in live {
-            let (incarnation, next_sequence) = sequences.last(actor).map_or((0, 0), |(inc, last)| (inc, last + 1));
+            let (incarnation, next_sequence) =
+                sequences.last(actor).map_or((0, 0), |(inc, last)| (inc, last.saturating_add(1)));
             let credit = proto::InsertCredit {
                 protocol_version: PROTOCOL_VERSION,
                 run_id: run_id.to_string(),
@@ -93,11 +112,11 @@ impl CreditLedger {
     }
 }
 
-/// Batches each of `actors` may have outstanding: `headroom` transitions shared out, rounded
-/// up, so that every actor gets at least one batch whenever there is any headroom.
-pub(super) fn window(headroom: u64, batch_transitions: u64, actors: usize) -> u32 {
+/// Batches each of `actors` may have outstanding: `room` transitions shared out, rounded
+/// up, so that every actor gets at least one batch whenever there is any room.
+pub(super) fn window(room: u64, batch_transitions: u64, actors: usize) -> u32 {
     let share = (actors.max(1) as u64).saturating_mul(batch_transitions.max(1));
-    u32::try_from(headroom.div_ceil(share)).unwrap_or(u32::MAX)
+    u32::try_from(room.div_ceil(share)).unwrap_or(u32::MAX)
 }
 
 #[cfg(test)]
@@ -123,27 +142,32 @@ mod tests {
         let due = ledger.due("r", 1024, 256, &live, &sequences, t0);
         assert_eq!(due.len(), 2);
         assert!(due.iter().all(|c| c.incarnation == 0 && c.window == 2), "{due:?}");
-        // A process the learner has not heard from may introduce itself.
-        assert!(ledger.admits(1, 55, 0));
+        // A process the learner has not heard from may introduce itself, once per refresh.
+        assert!(ledger.admit(1, 55, 0, t0));
+        assert!(!ledger.admit(1, 57, 0, t0), "a second new process of the same id waits");
         assert!(ledger.due("r", 1024, 256, &live, &sequences, t0).is_empty(), "nothing changed");
         sequences.check(1, 55, 0).unwrap();
         let due = ledger.due("r", 1024, 256, &live, &sequences, t0);
         assert_eq!(due.len(), 1, "{due:?}");
         assert_eq!((due[0].actor_id, due[0].incarnation, due[0].next_sequence, due[0].window), (1, 55, 1, 2));
-        assert!(ledger.admits(1, 55, 2) && !ledger.admits(1, 55, 3));
-        // The window closes; what was granted stays granted.
+        assert!(ledger.admit(1, 55, 2, t0) && !ledger.admit(1, 55, 3, t0));
+        // The window closes; what was granted stays granted, and no process introduces itself.
         let due = ledger.due("r", 0, 256, &live, &sequences, t0);
         assert!(due.iter().all(|c| c.window == 0));
-        assert!(ledger.admits(1, 55, 2) && !ledger.admits(1, 55, 3));
+        assert!(ledger.admit(1, 55, 2, t0) && !ledger.admit(1, 55, 3, t0));
+        assert!(!ledger.admit(2, 9, 0, t0 + CREDIT_REFRESH), "no room, no introduction");
         // Unchanged credits go out again after the refresh.
         assert_eq!(ledger.due("r", 0, 256, &live, &sequences, t0 + CREDIT_REFRESH).len(), 2);
         // A new process of the same id starts from its own grant.
         sequences.check(1, 56, 0).unwrap();
         ledger.due("r", 256, 256, &live, &sequences, t0);
-        assert!(ledger.admits(1, 56, 1) && !ledger.admits(1, 56, 2));
+        assert!(ledger.admit(1, 56, 1, t0) && !ledger.admit(1, 56, 2, t0));
+        // Without a limit, windows are as wide as the wire carries.
+        assert_eq!(ledger.due("r", u64::MAX, 256, &live, &sequences, t0)[0].window, u32::MAX);
         // Actors that leave are forgotten.
         let only_two: BTreeSet<u32> = [2].into();
         ledger.due("r", 256, 256, &only_two, &sequences, t0);
         assert!(!ledger.sent.contains_key(&1) && !ledger.granted.contains_key(&1));
+        assert!(!ledger.introduced.contains_key(&1));
     }
 }

@@ -38,8 +38,9 @@ pub struct ActorView {
     pub distance_ema: f32,
     pub return_ema: f32,
     pub gaps: u64,
-    /// Share of its last status interval the actor's batches waited for insert credit.
-    pub credit_wait_fraction: f32,
+    /// Share of its last status interval the actor's simulation waited to hand over a
+    /// message (for insert credit, or for a slow link).
+    pub waiting_fraction: f32,
 }
 
 /// Which kind of node a liveliness token announces.
@@ -125,10 +126,13 @@ pub(super) struct Shared {
     pub(super) pending_episodes: Mutex<Vec<proto::EpisodeStats>>,
     /// Transitions in the ingest queue, not yet in replay.
     pub(super) queued_transitions: AtomicU64,
-    /// The rate limiter's insert headroom in transitions, as the training thread last saw it
-    /// (`rate.limit_inserts`; 0 until it has started).
-    pub(super) insert_headroom: AtomicU64,
-    /// Insert credit granted to each live actor (`rate.limit_inserts`).
+    /// Transitions ever put in the ingest queue (they may since have been inserted).
+    pub(super) admitted_transitions: AtomicU64,
+    /// How many admitted transitions the learner takes in all, as the training thread last
+    /// worked it out from the rate limiter: `admitted_transitions` then, plus the headroom
+    /// (`credit.rs`). `u64::MAX` when inserts are not limited; 0 until training starts.
+    pub(super) insert_limit: AtomicU64,
+    /// Insert credit granted to each live actor.
     pub(super) credits: Mutex<CreditLedger>,
 }
 
@@ -408,7 +412,7 @@ fn record_status(shared: &Shared, report: proto::ActorStatus) {
     view.env_steps = report.env_steps;
     view.env_steps_per_second = report.env_steps_per_second;
     view.epsilon = report.epsilon;
-    view.credit_wait_fraction = report.credit_wait_fraction;
+    view.waiting_fraction = report.waiting_fraction;
 }
 
 fn record_episode(shared: &Shared, stats: proto::EpisodeStats) {
@@ -451,7 +455,9 @@ fn ingest_callback(
         };
         // Before the sequence check, so that a refused batch does not advance the
         // acknowledgement its actor's next credit counts from.
-        if limit_inserts && !lock(&shared.credits).admits(batch.actor_id, batch.incarnation, batch.sequence) {
+        if limit_inserts
+            && !lock(&shared.credits).admit(batch.actor_id, batch.incarnation, batch.sequence, Instant::now())
+        {
             let error = proto::ProtoError::OverCredit { actor: batch.actor_id, sequence: batch.sequence };
             return count_rejection(&shared, &error);
         }
@@ -468,7 +474,9 @@ fn ingest_callback(
         let transitions = batch.len() as u64;
         shared.queued_transitions.fetch_add(transitions, Ordering::Relaxed);
         match queue.try_send(batch) {
-            Ok(()) => {}
+            Ok(()) => {
+                shared.admitted_transitions.fetch_add(transitions, Ordering::Relaxed);
+            }
             Err(TrySendError::Full(_)) => {
                 shared.queued_transitions.fetch_sub(transitions, Ordering::Relaxed);
                 let dropped = shared.dropped_batches.fetch_add(1, Ordering::Relaxed) + 1;

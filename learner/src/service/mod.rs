@@ -113,10 +113,13 @@ pub async fn run(options: ServiceOptions, stop: Arc<AtomicBool>) -> Result<Outco
         .await
         .map_err(zenoh_error("declaring the weights publisher"))?;
 
-    let credits = config.rate.limit_inserts.then(|| {
-        let batch = credit_batch_transitions(&config);
-        tokio::spawn(publish_credits(session.clone(), run_id.clone(), Arc::clone(&shared), batch))
-    });
+    // Aborted when `run` returns, on every path.
+    let _credits = AbortOnDrop(tokio::spawn(publish_credits(
+        session.clone(),
+        run_id.clone(),
+        Arc::clone(&shared),
+        credit_batch_transitions(&config),
+    )));
     // Training runs on its own thread; weights come back through a channel to be published.
     let (weights_tx, mut weights_rx) = tokio::sync::mpsc::channel::<Vec<u8>>(2);
     let trainer = {
@@ -136,9 +139,6 @@ pub async fn run(options: ServiceOptions, stop: Arc<AtomicBool>) -> Result<Outco
         }
     }
     let outcome = trainer.join().map_err(|_| ServiceError::TrainingThreadPanicked)??;
-    if let Some(credits) = credits {
-        credits.abort();
-    }
     broadcast_stop(&session, &run_id).await;
     let _ = session.close().await;
     Ok(outcome)
@@ -151,8 +151,18 @@ fn credit_batch_transitions(config: &TrainConfig) -> u64 {
     (config.actor.batch_transitions as u64).div_ceil(envs) * envs
 }
 
-/// Hands out insert credit every [`credit::CREDIT_EVERY`] until aborted: the training
-/// thread's headroom shared among the live actors (`credit.rs`).
+/// A task aborted when this is dropped.
+#[derive(Debug)]
+struct AbortOnDrop(tokio::task::JoinHandle<()>);
+
+impl Drop for AbortOnDrop {
+    fn drop(&mut self) {
+        self.0.abort();
+    }
+}
+
+/// Hands out insert credit every [`credit::CREDIT_EVERY`] until aborted: what is left of the
+/// training thread's insert limit, shared among the live actors (`credit.rs`).
 async fn publish_credits(session: zenoh::Session, run_id: String, shared: Arc<edge::Shared>, batch: u64) {
     use std::sync::atomic::Ordering;
     let mut ticker = tokio::time::interval(credit::CREDIT_EVERY);
@@ -161,9 +171,9 @@ async fn publish_credits(session: zenoh::Session, run_id: String, shared: Arc<ed
         ticker.tick().await;
         let live = shared.connected();
         let sequences = edge::lock(&shared.sequences).clone();
-        let headroom = shared.insert_headroom.load(Ordering::Relaxed);
-        let due =
-            edge::lock(&shared.credits).due(&run_id, headroom, batch, &live, &sequences, std::time::Instant::now());
+        let limit = shared.insert_limit.load(Ordering::Relaxed);
+        let room = limit.saturating_sub(shared.admitted_transitions.load(Ordering::Relaxed));
+        let due = edge::lock(&shared.credits).due(&run_id, room, batch, &live, &sequences, std::time::Instant::now());
         for credit in due {
             let key = keys::credit(&run_id, credit.actor_id);
             // Dropped rather than queued behind a slow link: the next refresh replaces it.

@@ -250,7 +250,7 @@ fn write_status_metrics(metrics: &mut MetricsWriter, status: &Status, shared: &S
         .actors
         .iter()
         .filter(|(id, _)| shared.may_tag(**id))
-        .map(|(id, view)| (format!("actor/{id}/credit_wait"), f64::from(view.credit_wait_fraction)))
+        .map(|(id, view)| (format!("actor/{id}/waiting"), f64::from(view.waiting_fraction)))
         .collect();
     scalars.extend(waits.iter().map(|(t, v)| (t.as_str(), *v)));
     let ingest: Vec<(String, f64)> = status
@@ -272,8 +272,8 @@ fn report(status: &Status, run_dir: &Path) {
         .iter()
         .map(|(id, a)| {
             let rate = status.ingest_per_second.get(id).copied().unwrap_or(0.0);
-            let wait = if a.credit_wait_fraction > 0.0 {
-                format!(" waits {:.0}%", 100.0 * a.credit_wait_fraction)
+            let wait = if a.waiting_fraction >= 0.005 {
+                format!(" waits {:.0}%", 100.0 * a.waiting_fraction)
             } else {
                 String::new()
             };

@@ -59,7 +59,7 @@ pub(super) fn train(
         if let Some(stats) = trainer.learn_step() {
             trainer.after_update(&stats);
         }
-        trainer.share_insert_headroom();
+        trainer.share_insert_limit();
         trainer.report();
     }
     trainer.finish()
@@ -199,12 +199,21 @@ impl<'a> Trainer<'a> {
         true
     }
 
-    /// Tells the credit publisher how many more transitions the rate limiter takes.
-    fn share_insert_headroom(&self) {
-        let queued = self.links.shared.queued_transitions.load(Ordering::Relaxed);
-        if let Some(headroom) = self.rate.insert_headroom(self.replay.len(), queued) {
-            self.links.shared.insert_headroom.store(headroom, Ordering::Relaxed);
-        }
+    /// Tells the credit publisher how many admitted transitions the rate limiter takes in
+    /// all: those admitted so far plus its headroom (`u64::MAX` when inserts are not
+    /// limited). An absolute count, so that a stalled training thread stops the credit once
+    /// its headroom is used rather than granting it again every round.
+    fn share_insert_limit(&self) {
+        let shared = self.links.shared;
+        // Admitted first: a batch admitted in between is then also counted as queued, which
+        // only lowers the limit.
+        let admitted = shared.admitted_transitions.load(Ordering::Relaxed);
+        let queued = shared.queued_transitions.load(Ordering::Relaxed);
+        let limit = self
+            .rate
+            .insert_headroom(self.replay.len(), queued)
+            .map_or(u64::MAX, |headroom| admitted.saturating_add(headroom));
+        shared.insert_limit.store(limit, Ordering::Relaxed);
     }
 
     /// The RL step: sample a minibatch (n-step returns, importance weights when

@@ -173,7 +173,7 @@ fn limited_inserts_hold_samples_per_insert_when_the_learner_is_the_slow_side() {
     assert!((ratio - 64.0).abs() <= 6.4, "realised samples per insert {ratio}, configured 64: {status:#}");
     // The actors were held back, and said so; none sent past its credit.
     let waits: Vec<f64> =
-        (0..2).map(|id| status["actors"][id.to_string()]["credit_wait_fraction"].as_f64().unwrap()).collect();
+        (0..2).map(|id| status["actors"][id.to_string()]["waiting_fraction"].as_f64().unwrap()).collect();
     assert!(waits.iter().all(|&w| w > 0.2), "credit waits {waits:?}: {status:#}");
     assert_eq!(status["rejected"].get("over_credit"), None, "{status:#}");
     assert!(status["insert_headroom"].is_u64(), "{status:#}");
