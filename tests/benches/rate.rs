@@ -4,8 +4,8 @@
 //!
 //! Each case is `PRESET:ACTORS:MODE:SECONDS` (MODE `both`: `rate.limit_inserts=true`,
 //! `samples`: the sample side alone); `RATE_CASES` replaces the default list, which holds the
-//! study preset with two actors for 10 minutes and the default preset with one and four
-//! actors (the learner the fast side, then the slow one) in both modes for 3 minutes.
+//! study preset with two actors for 10 minutes, and the default preset for 3 minutes with
+//! one actor (the learner the fast side) and with four (the slow side) in both modes.
 //! Printed per case, from the learner's last status: the configured and the realised samples
 //! per insert (counted by the rate limiter from the warm-up on) and their ratio, updates/s,
 //! env steps/s, and the actors' mean share of time spent waiting to hand over their data
@@ -16,7 +16,7 @@ use std::time::{Duration, Instant};
 
 use crawler_tests::{Learner, repo_root, u64_at};
 
-const DEFAULT_CASES: &str = "study:2:both:600,default:1:both:180,default:1:samples:180,\
+const DEFAULT_CASES: &str = "study:2:both:600,default:1:both:180,\
                              default:4:both:180,default:4:samples:180";
 
 struct Case {
