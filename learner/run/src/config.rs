@@ -320,7 +320,7 @@ impl Default for RateConfig {
 }
 
 impl RateConfig {
-    /// Both sides limited by default: see `configs/default.toml`'s `[rate]` for the measurement.
+    /// Both sides limited by default: docs/PERFORMANCE.md, "Rate control", has the measurement.
     const fn default_limit_inserts() -> bool {
         true
     }
