@@ -113,8 +113,8 @@ pub async fn run(options: ServiceOptions, stop: Arc<AtomicBool>) -> Result<Outco
         .await
         .map_err(zenoh_error("declaring the weights publisher"))?;
 
-    // Aborted when `run` returns, on every path.
-    let _credits = AbortOnDrop(tokio::spawn(publish_credits(
+    // Aborted when `run` returns, on every path, and before the session closes.
+    let credits = AbortOnDrop(tokio::spawn(publish_credits(
         session.clone(),
         run_id.clone(),
         Arc::clone(&shared),
@@ -139,6 +139,7 @@ pub async fn run(options: ServiceOptions, stop: Arc<AtomicBool>) -> Result<Outco
         }
     }
     let outcome = trainer.join().map_err(|_| ServiceError::TrainingThreadPanicked)??;
+    drop(credits);
     broadcast_stop(&session, &run_id).await;
     let _ = session.close().await;
     Ok(outcome)
