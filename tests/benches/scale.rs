@@ -86,6 +86,8 @@ fn anchor(tls: Option<&Tls>, actors: u32, rate: f64, seconds: f64) -> f64 {
     let sink = Command::new(binary("loadgen"))
         .args(tls.map(|t| t.flags("learner")).unwrap_or_default())
         .args(["sink", "--listen", &endpoint, "--seconds", &seconds.to_string()])
+        // Up until the generators are done: a peer that vanishes mid-put stalls them.
+        .args(["--linger", &(seconds + 10.0).to_string()])
         .env("RUST_LOG", "warn,zenoh=error")
         .stdout(Stdio::piped())
         .spawn()
@@ -93,8 +95,14 @@ fn anchor(tls: Option<&Tls>, actors: u32, rate: f64, seconds: f64) -> f64 {
     std::thread::sleep(Duration::from_millis(500));
     // The generators run past the sink's window: it counts from its first message on.
     let load = offer(&endpoint, tls, actors, rate, seconds + 5.0 + f64::from(actors) * 0.02);
-    let sink = report(sink);
+    let mut sink = sink;
+    let mut line = String::new();
+    std::io::BufRead::read_line(&mut std::io::BufReader::new(sink.stdout.take().unwrap()), &mut line).unwrap();
+    let sink_report: serde_json::Value = serde_json::from_str(&line).unwrap();
     let _ = report(load);
+    let _ = sink.kill();
+    let _ = sink.wait();
+    let sink = sink_report;
     let (batch, _) = batch_shape();
     sink["messages"].as_f64().unwrap() * batch as f64 / sink["seconds"].as_f64().unwrap()
 }
@@ -141,7 +149,7 @@ fn learner_row(actors: u32, rate: f64, seconds: f64, zenoh: f64) -> Row {
     let mut learner = Learner::builder(runs.path(), RUN).config(CONFIG).args(&args).start();
     learner.wait_for(Duration::from_secs(60), "the learner's first status", |_| true);
     let endpoint = format!("tcp/127.0.0.1:{}", learner.port);
-    let load = offer(&endpoint, None, actors, rate, seconds + 10.0 + f64::from(actors) * 0.02);
+    let load = offer(&endpoint, None, actors, rate, seconds + 15.0 + f64::from(actors) * 0.05);
     let pid = learner.child.id();
     let all_connected = |s: &serde_json::Value| s["connected_actors"].as_array().map_or(0, Vec::len) >= actors as usize;
     let first = learner.wait_for(Duration::from_secs(120), "every simulated actor connected and sending", |s| {
@@ -175,8 +183,9 @@ fn learner_row(actors: u32, rate: f64, seconds: f64, zenoh: f64) -> Row {
         rss: (rss0, rss1),
         connected: last["connected_actors"].as_array().map_or(0, Vec::len),
     };
-    learner.terminate(Duration::from_secs(60));
+    // The generators finish first: a learner that left would stall their puts.
     let _ = report(load);
+    learner.terminate(Duration::from_secs(60));
     row
 }
 

@@ -72,6 +72,10 @@ enum Mode {
         listen: String,
         #[arg(long, default_value_t = 20.0)]
         seconds: f64,
+        /// Seconds the router stays up after the report, so that load generators still
+        /// publishing never lose their peer mid-put.
+        #[arg(long, default_value_t = 0.0)]
+        linger: f64,
     },
 }
 
@@ -97,14 +101,25 @@ fn main() -> anyhow::Result<()> {
                 let overrides = tls.map(|t| t.zenoh_settings(TlsSide::Connect)).unwrap_or_default();
                 actors_mode(&connect, &overrides, first_id..first_id.saturating_add(actors), plan).await
             }
-            Mode::Sink { listen, seconds } => {
+            Mode::Sink { listen, seconds, linger } => {
                 let overrides = tls.map(|t| t.zenoh_settings(TlsSide::Listen)).unwrap_or_default();
-                sink(&listen, &overrides, Duration::from_secs_f64(seconds)).await
+                let session = open_sink(&listen, &overrides).await?;
+                let report = count(&session, Duration::from_secs_f64(seconds)).await?;
+                print_line(&report)?;
+                tokio::time::sleep(Duration::from_secs_f64(linger)).await;
+                Ok(serde_json::Value::Null)
             }
         }
     })?;
-    writeln!(std::io::stdout(), "{report}").context("writing stdout")?;
+    if !report.is_null() {
+        print_line(&report)?;
+    }
     Ok(())
+}
+
+fn print_line(report: &serde_json::Value) -> anyhow::Result<()> {
+    let mut out = std::io::stdout().lock();
+    writeln!(out, "{report}").and_then(|()| out.flush()).context("writing stdout")
 }
 
 fn err(context: &'static str) -> impl FnOnce(zenoh::Error) -> anyhow::Error {
@@ -231,8 +246,8 @@ fn batch_head(run: &str, id: u32, incarnation: u64, sequence: u64) -> Vec<u8> {
     .encode_to_vec()
 }
 
-/// A router counting every transitions message of any run, until `duration` after the first.
-async fn sink(listen: &str, overrides: &[(String, String)], duration: Duration) -> anyhow::Result<serde_json::Value> {
+/// A router that load generators connect to.
+async fn open_sink(listen: &str, overrides: &[(String, String)]) -> anyhow::Result<zenoh::Session> {
     let mut config = zenoh::Config::default();
     let settings = [
         ("mode", "\"router\"".to_string()),
@@ -245,7 +260,12 @@ async fn sink(listen: &str, overrides: &[(String, String)], duration: Duration) 
     for (key, value) in settings {
         config.insert_json5(&key, &value).map_err(|e| anyhow::anyhow!("setting {key}: {e}"))?;
     }
-    let session = zenoh::open(config).await.map_err(err("opening the router"))?;
+    zenoh::open(config).await.map_err(err("opening the router"))
+}
+
+/// Counts every transitions message of any run that reaches `session`, from the first one
+/// on, for `duration`.
+async fn count(session: &zenoh::Session, duration: Duration) -> anyhow::Result<serde_json::Value> {
     let counts = Arc::new((AtomicU64::new(0), AtomicU64::new(0)));
     let counter = Arc::clone(&counts);
     let _subscriber = session
