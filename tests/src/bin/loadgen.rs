@@ -146,14 +146,21 @@ async fn actors_mode(
     let actors = ids.len();
     let body = Arc::new(batch_body(plan.batch, plan.envs));
     let batches = Arc::new(AtomicU64::new(0));
-    let mut tasks = Vec::new();
+    // Every session first, then every actor at once: sessions opened while earlier actors
+    // flood the link would open late and keep the whole run going past its end.
+    let mut sessions = Vec::new();
     for id in ids {
         let config = crawler_actor::node::client_config(&[connect.to_string()], overrides)?;
-        let session = zenoh::open(config).await.map_err(err("opening a session"))?;
-        let (plan, body, batches) = (plan.clone(), Arc::clone(&body), Arc::clone(&batches));
-        tasks.push(tokio::spawn(async move { actor(session, id, plan, &body, &batches).await }));
+        sessions.push((id, zenoh::open(config).await.map_err(err("opening a session"))?));
     }
-    let start = Instant::now();
+    // One clock for all: the learner sees every token before the first batch, and a
+    // generator that waits for a busy worker thread still stops on time.
+    let start = Instant::now() + Duration::from_millis(500);
+    let mut tasks = Vec::new();
+    for (id, session) in sessions {
+        let (plan, body, batches) = (plan.clone(), Arc::clone(&body), Arc::clone(&batches));
+        tasks.push(tokio::spawn(async move { actor(session, id, plan, start, &body, &batches).await }));
+    }
     for task in tasks {
         task.await.context("an actor task panicked")??;
     }
@@ -166,8 +173,15 @@ async fn actors_mode(
     }))
 }
 
-/// One simulated actor: a liveliness token, then batches at the plan's rate.
-async fn actor(session: zenoh::Session, id: u32, plan: Plan, body: &[u8], batches: &AtomicU64) -> anyhow::Result<()> {
+/// One simulated actor: a liveliness token, then from `start` on batches at the plan's rate.
+async fn actor(
+    session: zenoh::Session,
+    id: u32,
+    plan: Plan,
+    start: Instant,
+    body: &[u8],
+    batches: &AtomicU64,
+) -> anyhow::Result<()> {
     let _token =
         session.liveliness().declare_token(keys::alive_actor(&plan.run, id)).await.map_err(err("liveliness"))?;
     let incarnation = 1 + u64::from(id);
@@ -194,10 +208,8 @@ async fn actor(session: zenoh::Session, id: u32, plan: Plan, body: &[u8], batche
         .congestion_control(CongestionControl::Block)
         .await
         .map_err(err("declaring the publisher"))?;
-    // Let the learner see the token before the first batch.
-    tokio::time::sleep(Duration::from_millis(500)).await;
+    tokio::time::sleep_until(start.into()).await;
     let interval = (plan.rate > 0.0).then(|| Duration::from_secs_f64(plan.batch as f64 / plan.rate));
-    let start = Instant::now();
     let mut sequence = 0u64;
     while start.elapsed() < plan.duration {
         // The actor's own credit gate: wait until it admits this batch.
@@ -212,9 +224,10 @@ async fn actor(session: zenoh::Session, id: u32, plan: Plan, body: &[u8], batche
         publisher.put(message).await.map_err(err("publishing"))?;
         batches.fetch_add(1, Ordering::Relaxed);
         sequence += 1;
-        if let Some(interval) = interval {
-            let due = start + interval.mul_f64(sequence as f64);
-            tokio::time::sleep_until(due.into()).await;
+        match interval {
+            Some(interval) => tokio::time::sleep_until((start + interval.mul_f64(sequence as f64)).into()).await,
+            // A put that finds room returns at once: let the other generators have the thread.
+            None => tokio::task::yield_now().await,
         }
     }
     // Let the last batches leave before the session closes.

@@ -228,22 +228,7 @@ fn compose_trains_and_survives_a_killed_and_a_disconnected_actor() {
     let libraries = docker(&["run", "--rm", "--entrypoint", "ldd", "crawler-actor", "/usr/local/bin/eval"]);
     assert!(!libraries.contains("torch") && !libraries.contains("not found"), "eval in the actor image: {libraries}");
     let mount = format!("{}:/runs:ro", compose.run_dir().parent().unwrap().display());
-    let eval = docker(&[
-        "run",
-        "--rm",
-        "--entrypoint",
-        "eval",
-        "-v",
-        &mount,
-        "crawler-actor",
-        &in_container,
-        "--episodes",
-        "1",
-        "--seconds",
-        "2",
-    ]);
-    let report: serde_json::Value =
-        serde_json::from_str(&eval).unwrap_or_else(|e| panic!("eval in the actor image printed no JSON ({e}): {eval}"));
+    let report = eval_in_actor_image(&mount, &in_container);
     assert!(report["episodes"].as_array().is_some_and(|e| e.len() == 1), "{report}");
 
     // A graceful stop leaves a final checkpoint.
@@ -251,6 +236,26 @@ fn compose_trains_and_survives_a_killed_and_a_disconnected_actor() {
     let checkpoint = crawler_learner::checkpoint::load(&checkpoints).unwrap();
     assert!(checkpoint.meta.progress.updates >= updates);
     assert!(Path::new(&compose.run_dir().join("metrics.csv")).exists());
+}
+
+/// `eval` of `checkpoints` (a path inside the container) for one 2 s episode, run from the
+/// actor image with `mount` (`-v` syntax); its JSON report.
+pub(crate) fn eval_in_actor_image(mount: &str, checkpoints: &str) -> serde_json::Value {
+    let eval = docker(&[
+        "run",
+        "--rm",
+        "--entrypoint",
+        "eval",
+        "-v",
+        mount,
+        "crawler-actor",
+        checkpoints,
+        "--episodes",
+        "1",
+        "--seconds",
+        "2",
+    ]);
+    serde_json::from_str(&eval).unwrap_or_else(|e| panic!("eval in the actor image printed no JSON ({e}): {eval}"))
 }
 
 /// The names of the Docker networks a container is attached to.

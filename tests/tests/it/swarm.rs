@@ -17,7 +17,7 @@ use std::time::{Duration, Instant};
 
 use crawler_tests::{repo_root, u64_at};
 
-use crate::docker::{assert_docker_ready, docker, wait_healthy};
+use crate::docker::{assert_docker_ready, docker, eval_in_actor_image, wait_healthy};
 
 /// The node label that places the learner (deploy/stack.yml).
 const LEARNER_LABEL: &str = "crawler.learner";
@@ -231,21 +231,6 @@ fn a_swarm_stack_scales_replaces_and_stops_with_a_checkpoint() {
         .max()
         .unwrap_or_else(|| panic!("no checkpoint in the volume: {listing}"));
     assert!(newest >= u64_at(&last, "/updates"), "newest checkpoint step {newest}, last status {last:#}");
-    let eval = docker(&[
-        "run",
-        "--rm",
-        "-v",
-        &mount,
-        "--entrypoint",
-        "eval",
-        "crawler-actor",
-        &checkpoints,
-        "--episodes",
-        "1",
-        "--seconds",
-        "2",
-    ]);
-    let report: serde_json::Value =
-        serde_json::from_str(&eval).unwrap_or_else(|e| panic!("eval printed no JSON ({e}): {eval}"));
+    let report = eval_in_actor_image(&mount, &checkpoints);
     assert!(report["episodes"].as_array().is_some_and(|e| e.len() == 1), "{report}");
 }
