@@ -667,7 +667,7 @@ fn simulate(
         if !options.evaluator {
             append_transitions(&mut batch, &env, &observations, &actions);
             batch.physics_steps += physics;
-            if batch.len() >= settings.batch_transitions {
+            if batch.len() >= settings.transitions_per_batch() {
                 batch.weights_version = policy.version;
                 batch.count = batch.len() as u32;
                 let full = std::mem::replace(&mut batch, new_batch(run_id, id, incarnation, input_dim));

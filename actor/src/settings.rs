@@ -101,6 +101,13 @@ impl Default for ActorSettings {
 }
 
 impl ActorSettings {
+    /// Transitions in each batch an actor publishes: whole steps of all its crawlers, the
+    /// first that reach `batch_transitions`. The learner's insert credit counts in these.
+    pub fn transitions_per_batch(&self) -> usize {
+        let envs = self.envs_per_actor.max(1);
+        self.batch_transitions.div_ceil(envs) * envs
+    }
+
     /// Checks every setting; the error names the field.
     pub fn validate(&self) -> Result<(), SettingsError> {
         self.env.validate()?;
@@ -418,6 +425,11 @@ mod tests {
         let mut nan = good.clone();
         nan.status_interval_s = f64::NAN;
         assert!(ActorSettings::try_from(&nan).is_err());
+        // Batches are whole steps of every crawler.
+        let batches = |batch_transitions, envs_per_actor| {
+            ActorSettings { batch_transitions, envs_per_actor, ..ActorSettings::default() }.transitions_per_batch()
+        };
+        assert_eq!((batches(256, 8), batches(100, 8), batches(1, 3)), (256, 104, 3));
         // A finite but absurd interval would flood the learner with status reports.
         let mut tiny = good.clone();
         tiny.status_interval_s = 1e-20;

@@ -23,11 +23,7 @@ use std::path::PathBuf;
 use std::process::Command;
 use std::time::Duration;
 
-use crawler_tests::{Learner, binary};
-
-fn env_or<T: std::str::FromStr>(name: &str, default: T) -> T {
-    std::env::var(name).ok().and_then(|v| v.parse().ok()).unwrap_or(default)
-}
+use crawler_tests::{Learner, binary, env_or};
 
 #[derive(serde::Serialize)]
 struct Evaluation {

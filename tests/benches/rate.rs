@@ -14,7 +14,7 @@
 
 use std::time::{Duration, Instant};
 
-use crawler_tests::{Learner, repo_root, u64_at};
+use crawler_tests::{Learner, cpu_model, repo_root, u64_at};
 
 const DEFAULT_CASES: &str = "study:2:both:600,default:1:both:180,\
                              default:4:both:180,default:4:samples:180";
@@ -45,16 +45,7 @@ fn parse(case: &str) -> Case {
 fn main() {
     let cases: Vec<Case> =
         std::env::var("RATE_CASES").unwrap_or_else(|_| DEFAULT_CASES.into()).split(',').map(parse).collect();
-    let cpu = std::fs::read_to_string("/proc/cpuinfo")
-        .ok()
-        .and_then(|s| {
-            s.lines()
-                .find(|l| l.starts_with("model name"))
-                .and_then(|l| l.split(':').nth(1))
-                .map(|s| s.trim().to_string())
-        })
-        .unwrap_or_default();
-    println!("== rate control, {} cores, {cpu}", std::thread::available_parallelism().map_or(0, |n| n.get()));
+    println!("== rate control, {} cores, {}", std::thread::available_parallelism().map_or(0, |n| n.get()), cpu_model());
     println!(
         "{:>8} {:>6} {:>8} {:>6} {:>10} {:>9} {:>8} {:>9} {:>10} {:>10}",
         "preset", "actors", "mode", "s", "configured", "realised", "ratio", "updates/s", "env st/s", "waiting"

@@ -22,21 +22,17 @@
 use std::process::{Command, Stdio};
 use std::time::Duration;
 
-use crawler_tests::{Learner, binary, free_port, rss_mib, u64_at};
+use crawler_tests::{Learner, binary, cpu_model, cpu_seconds, env_or, free_port, rss_mib, u64_at};
 
 const CONFIG: &str = "configs/default.toml";
 const RUN: &str = "scale";
 
-fn env_or<T: std::str::FromStr>(name: &str, default: T) -> T {
-    std::env::var(name).ok().and_then(|v| v.parse().ok()).unwrap_or(default)
-}
-
-/// The default preset's batch: `actor.batch_transitions` whole steps of `envs_per_actor`.
+/// The default preset's batch: its transitions and the crawlers they come from.
 fn batch_shape() -> (usize, u32) {
     let config = crawler_run::config::TrainConfig::load(&crawler_tests::repo_root().join(CONFIG), &[])
         .unwrap_or_else(|e| panic!("{CONFIG}: {e}"));
-    let envs = config.actor.envs_per_actor;
-    (config.actor.batch_transitions.div_ceil(envs) * envs, envs as u32)
+    let settings = config.actor_settings();
+    (settings.transitions_per_batch(), settings.envs_per_actor as u32)
 }
 
 /// Mutual-TLS flags for `loadgen`: the sink as the learner, the actors as actor 0.
@@ -105,15 +101,6 @@ fn anchor(tls: Option<&Tls>, actors: u32, rate: f64, seconds: f64) -> f64 {
     let sink = sink_report;
     let (batch, _) = batch_shape();
     sink["messages"].as_f64().unwrap() * batch as f64 / sink["seconds"].as_f64().unwrap()
-}
-
-/// CPU seconds (user + system) process `pid` has used, from /proc.
-fn cpu_seconds(pid: u32) -> f64 {
-    let stat = std::fs::read_to_string(format!("/proc/{pid}/stat")).unwrap_or_default();
-    let fields: Vec<&str> = stat.rsplit(')').next().unwrap_or("").split_whitespace().collect();
-    // utime and stime are fields 14 and 15 of stat, 12 and 13 after the name.
-    let ticks: f64 = fields.get(11..13).map_or(0.0, |f| f.iter().filter_map(|v| v.parse::<f64>().ok()).sum());
-    ticks / 100.0
 }
 
 struct Row {
@@ -197,19 +184,11 @@ fn main() {
         .collect();
     let rate: f64 = env_or("SCALE_RATE", 2000.0);
     let seconds: f64 = env_or("SCALE_SECONDS", 20.0);
-    let cpu = std::fs::read_to_string("/proc/cpuinfo")
-        .ok()
-        .and_then(|s| {
-            s.lines()
-                .find(|l| l.starts_with("model name"))
-                .map(|l| l.split(':').nth(1).unwrap_or("").trim().to_string())
-        })
-        .unwrap_or_default();
     let (batch, _) = batch_shape();
     println!(
         "== scale: {CONFIG}, batches of {batch} transitions, {rate} transitions/s offered per actor, {seconds} s windows"
     );
-    println!("== {} cores, {cpu}", std::thread::available_parallelism().map_or(0, |n| n.get()));
+    println!("== {} cores, {}", std::thread::available_parallelism().map_or(0, |n| n.get()), cpu_model());
     println!(
         "{:>6} {:>10} {:>10} {:>10} {:>10} {:>10} {:>8} {:>8} {:>9} {:>6} {:>17} {:>9} {:>10}",
         "actors",

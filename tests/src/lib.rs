@@ -339,19 +339,41 @@ fn proc_status_mib(pid: u32, field: &str) -> Option<f64> {
     Some(kib / 1024.0)
 }
 
+/// The fields of `/proc/<pid>/stat` after the command name (field 3, the state, first).
+fn stat_fields(pid: u32) -> Vec<String> {
+    let stat = std::fs::read_to_string(format!("/proc/{pid}/stat")).unwrap_or_default();
+    stat.rsplit(')').next().unwrap_or("").split_whitespace().map(String::from).collect()
+}
+
 /// Child processes of `pid`, from /proc.
 pub fn children_of(pid: u32) -> Vec<u32> {
     let Ok(entries) = std::fs::read_dir("/proc") else { return Vec::new() };
     entries
         .filter_map(Result::ok)
         .filter_map(|e| e.file_name().to_str()?.parse::<u32>().ok())
-        .filter(|child| {
-            std::fs::read_to_string(format!("/proc/{child}/stat"))
-                .ok()
-                .and_then(|stat| stat.rsplit(')').next()?.split_whitespace().nth(1)?.parse::<u32>().ok())
-                == Some(pid)
-        })
+        .filter(|&child| stat_fields(child).get(1).and_then(|ppid| ppid.parse::<u32>().ok()) == Some(pid))
         .collect()
+}
+
+/// CPU seconds (user + system) process `pid` has used, from /proc: stat's fields 14 and 15
+/// (utime, stime), in clock ticks of 1/100 s.
+pub fn cpu_seconds(pid: u32) -> f64 {
+    let ticks: f64 = stat_fields(pid).get(11..13).map_or(0.0, |f| f.iter().filter_map(|v| v.parse::<f64>().ok()).sum());
+    ticks / 100.0
+}
+
+/// This machine's CPU model, from /proc/cpuinfo (empty where it says none), for the header of
+/// a benchmark's table.
+pub fn cpu_model() -> String {
+    let info = std::fs::read_to_string("/proc/cpuinfo").unwrap_or_default();
+    let model = info.lines().find(|l| l.starts_with("model name")).and_then(|l| l.split(':').nth(1));
+    model.unwrap_or("").trim().to_string()
+}
+
+/// The environment variable `name` parsed, or `default` when it is unset or does not parse
+/// (benchmarks' knobs).
+pub fn env_or<T: std::str::FromStr>(name: &str, default: T) -> T {
+    std::env::var(name).ok().and_then(|v| v.parse().ok()).unwrap_or(default)
 }
 
 /// The version `probe forge` stamps on forged weights: far above anything a test run publishes.

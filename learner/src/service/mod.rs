@@ -118,7 +118,7 @@ pub async fn run(options: ServiceOptions, stop: Arc<AtomicBool>) -> Result<Outco
         session.clone(),
         run_id.clone(),
         Arc::clone(&shared),
-        credit_batch_transitions(&config),
+        config.actor_settings().transitions_per_batch() as u64,
     )));
     // Training runs on its own thread; weights come back through a channel to be published.
     let (weights_tx, mut weights_rx) = tokio::sync::mpsc::channel::<Vec<u8>>(2);
@@ -143,13 +143,6 @@ pub async fn run(options: ServiceOptions, stop: Arc<AtomicBool>) -> Result<Outco
     broadcast_stop(&session, &run_id).await;
     let _ = session.close().await;
     Ok(outcome)
-}
-
-/// Transitions in each batch an actor publishes: whole steps of all its crawlers, the first
-/// that reach `actor.batch_transitions`.
-fn credit_batch_transitions(config: &TrainConfig) -> u64 {
-    let envs = config.actor.envs_per_actor.max(1) as u64;
-    (config.actor.batch_transitions as u64).div_ceil(envs) * envs
 }
 
 /// A task aborted when this is dropped.

@@ -59,8 +59,8 @@ pub(super) fn train(
         if let Some(stats) = trainer.learn_step() {
             trainer.after_update(&stats);
         }
-        trainer.share_insert_limit();
-        trainer.report();
+        let headroom = trainer.share_insert_limit();
+        trainer.report(headroom);
     }
     trainer.finish()
 }
@@ -202,18 +202,18 @@ impl<'a> Trainer<'a> {
     /// Tells the credit publisher how many admitted transitions the rate limiter takes in
     /// all: those admitted so far plus its headroom (`u64::MAX` when inserts are not
     /// limited). An absolute count, so that a stalled training thread stops the credit once
-    /// its headroom is used rather than granting it again every round.
-    fn share_insert_limit(&self) {
+    /// its headroom is used rather than granting it again every round. Returns the headroom
+    /// (None when inserts are not limited).
+    fn share_insert_limit(&self) -> Option<u64> {
         let shared = self.links.shared;
         // Admitted first: a batch admitted in between is then also counted as queued, which
         // only lowers the limit.
         let admitted = shared.admitted_transitions.load(Ordering::Relaxed);
         let queued = shared.queued_transitions.load(Ordering::Relaxed);
-        let limit = self
-            .rate
-            .insert_headroom(self.replay.len(), queued)
-            .map_or(u64::MAX, |headroom| admitted.saturating_add(headroom));
+        let headroom = self.rate.insert_headroom(self.replay.len(), queued);
+        let limit = headroom.map_or(u64::MAX, |headroom| admitted.saturating_add(headroom));
         shared.insert_limit.store(limit, Ordering::Relaxed);
+        headroom
     }
 
     /// The RL step: sample a minibatch (n-step returns, importance weights when
@@ -298,17 +298,16 @@ impl<'a> Trainer<'a> {
         checkpoint::save(&dir, &self.dqn, self.run_id, &self.progress, &self.config_json, replay, keep)
     }
 
-    /// Status and metrics, when they are due.
-    fn report(&mut self) {
+    /// Status and metrics, when they are due; `insert_headroom` as `share_insert_limit` just
+    /// worked it out.
+    fn report(&mut self, insert_headroom: Option<u64>) {
         let now = TrainingNow {
             progress: &self.progress,
             replay_len: self.replay.len(),
             train_seconds: self.train_seconds(),
             last_checkpoint: self.last_checkpoint.as_deref(),
             samples_per_insert: self.rate.realised_samples_per_insert(),
-            insert_headroom: self
-                .rate
-                .insert_headroom(self.replay.len(), self.links.shared.queued_transitions.load(Ordering::Relaxed)),
+            insert_headroom,
         };
         let every = self.config.learner.status_every_s;
         self.telemetry.tick(now, every, self.run_id, self.run_dir, self.links.shared);
