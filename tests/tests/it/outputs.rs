@@ -144,7 +144,11 @@ fn the_best_checkpoint_by_greedy_evaluation_is_kept_and_eval_reproduces_it() {
     let mut learner = Learner::builder(runs.path(), "best").actors(1).args(&args).start();
     let checkpoints = runs.path().join("best").join("checkpoints");
     let record = checkpoints.join(best::BEST_DIR).join(best::EVALUATION_FILE);
-    learner.wait_for(Duration::from_secs(180), "a best checkpoint", |_| record.is_file());
+    // Two periodic checkpoints besides the best, so that with the final one there are the
+    // three that `average --last 3` below takes, however fast this machine trains.
+    learner.wait_for(Duration::from_secs(180), "a best checkpoint and two periodic ones", |_| {
+        record.is_file() && checkpoint::list(&checkpoints).map_or(0, |kept| kept.len()) >= 2
+    });
     let exit = learner.terminate(Duration::from_secs(60));
     assert!(exit.success(), "{exit}");
 
