@@ -5,13 +5,14 @@ use std::io::{BufReader, Write};
 use std::path::{Path, PathBuf};
 
 pub use crawler_run::checkpoint::{
-    CHECKPOINT_FORMAT, Checkpoint, CheckpointError, CheckpointMeta, FileDigest, FileWriter, Progress, Snapshot,
-    corrupt, latest, list, load,
+    CHECKPOINT_FORMAT, Checkpoint, CheckpointError, CheckpointMeta, FileDigest, FileWriter, MAX_COUNTER, Progress,
+    Snapshot, corrupt, latest, list, load,
 };
 
 use crate::algo::dqn::Dqn;
 use crate::algo::network::{ParameterCountError, QNetwork};
-use crate::replay::Replay;
+use crate::replay::{Replay, ReplayConfig, SnapshotBounds};
+use crawler_run::config::TrainConfig;
 
 /// The network's weights as safetensors bytes named as PyTorch's `state_dict` (what the
 /// learner broadcasts and what `weights.safetensors` holds).
@@ -52,13 +53,54 @@ pub fn save(
     crawler_run::checkpoint::save(dir, &snapshot, run_id, progress, config, keep)
 }
 
-/// Reads the replay snapshot of a checkpoint, if it has one.
-pub fn load_replay(checkpoint: &Checkpoint) -> Result<Option<Replay>, CheckpointError> {
-    let Some((path, bytes)) = crawler_run::checkpoint::replay_bytes(checkpoint)? else { return Ok(None) };
+/// What a resumed run's replay must be: its configuration, its observation width, and the
+/// values ingest would have let in.
+#[derive(Debug, Clone, Copy)]
+pub struct ReplayExpectation<'a> {
+    pub config: &'a ReplayConfig,
+    pub obs_dim: usize,
+    pub bounds: &'a SnapshotBounds,
+}
+
+impl ReplayExpectation<'_> {
+    /// The most bytes such a replay's snapshot takes: per slot its observation, the
+    /// transition's fields at their widest varints and two sum-tree nodes, plus one pending
+    /// stream per slot at most.
+    fn most_bytes(&self) -> u64 {
+        let per_slot = self.obs_dim as u64 * 4 + 128;
+        (self.config.capacity as u64).saturating_mul(per_slot).saturating_add(1 << 20)
+    }
+}
+
+/// Reads the replay snapshot of a checkpoint, if it has one and it was taken with `expected`'s
+/// configuration (None otherwise: the run then starts an empty replay), and checks every
+/// record in it as ingest checks the wire's.
+pub fn load_replay(
+    checkpoint: &Checkpoint,
+    expected: &ReplayExpectation<'_>,
+) -> Result<Option<Replay>, CheckpointError> {
+    let Some((path, bytes)) = crawler_run::checkpoint::replay_bytes(checkpoint, expected.most_bytes())? else {
+        return Ok(None);
+    };
     let reader = BufReader::new(bytes.as_slice());
-    let replay: Replay = bincode::serde::decode_from_std_read(&mut { reader }, bincode::config::standard())
+    let mut replay: Replay = bincode::serde::decode_from_std_read(&mut { reader }, bincode::config::standard())
         .map_err(|e| CheckpointError::ReplayLayout { path: path.clone(), reason: e.to_string() })?;
+    if replay.config() != *expected.config || replay.obs_dim() != expected.obs_dim {
+        return Ok(None);
+    }
+    replay
+        .check_snapshot(expected.config, expected.obs_dim, expected.bounds)
+        .map_err(|reason| CheckpointError::ReplayContent { path, reason })?;
     Ok(Some(replay))
+}
+
+/// [`load_replay`] for a run of `config`: the replay it configures, the values its ingest
+/// lets in.
+pub fn load_replay_for(checkpoint: &Checkpoint, config: &TrainConfig) -> Result<Option<Replay>, CheckpointError> {
+    let bounds = SnapshotBounds::from(&crate::service::transition_limits(config, &checkpoint.meta.run_id));
+    let expected =
+        ReplayExpectation { config: &config.replay, obs_dim: config.env.policy_input_dim(), bounds: &bounds };
+    load_replay(checkpoint, &expected)
 }
 
 impl Dqn {

@@ -106,9 +106,15 @@ pub fn run_of(key: &str) -> Option<&str> {
     (parts.next() == Some(ROOT)).then(|| parts.next()).flatten()
 }
 
-/// The trailing numeric id of a key such as `crawler/<run>/alive/actor/<id>`.
-pub fn trailing_id(key: &str) -> Option<u32> {
-    key.rsplit('/').next()?.parse().ok()
+/// The trailing numeric id of a key such as `crawler/<run>/alive/actor/<id>`, in its one
+/// spelling: decimal, no sign, no leading zero. `03` or `+3` would otherwise name actor 3 too,
+/// and a token declared and dropped under such an alias would take actor 3 off the books.
+pub fn trailing_id(key: &str) -> Result<u32, ProtoError> {
+    let text = key.rsplit('/').next().unwrap_or(key);
+    match text.parse::<u32>() {
+        Ok(id) if id.to_string() == text => Ok(id),
+        _ => Err(ProtoError::NonCanonicalId { key: crate::validate::quoted_prefix(key) }),
+    }
 }
 
 #[cfg(test)]
@@ -120,7 +126,16 @@ mod tests {
         assert_eq!(transitions("r1", 3), "crawler/r1/transitions/3");
         assert_eq!(run_of("crawler/r1/weights"), Some("r1"));
         assert_eq!(run_of("other/r1/weights"), None);
-        assert_eq!(trailing_id(&alive_actor("r1", 12)), Some(12));
+        assert_eq!(trailing_id(&alive_actor("r1", 12)), Ok(12));
+        assert_eq!(trailing_id("crawler/r1/alive/actor/0"), Ok(0));
+        for alias in ["012", "+12", "00", "1_2", " 12", "12 ", "", "4294967296", "-0", "x"] {
+            let key = format!("crawler/r1/alive/actor/{alias}");
+            assert_eq!(
+                trailing_id(&key).map_err(|e| e.kind()),
+                Err("non_canonical_id"),
+                "{alias:?} must not name an actor"
+            );
+        }
         assert!(check_run_id("2026-11-22_run-1").is_ok());
         for bad in ["", "a/b", "a*", "x".repeat(65).as_str(), "ünïcode"] {
             assert!(check_run_id(bad).is_err(), "{bad}");

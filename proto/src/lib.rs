@@ -10,6 +10,7 @@
 
 pub mod keys;
 pub mod messages;
+mod transition_codec;
 pub mod validate;
 
 pub use messages::*;

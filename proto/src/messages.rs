@@ -4,49 +4,49 @@
 ///
 /// Transition i observed `observations[i·obs_dim .. (i+1)·obs_dim]` in crawler `env_ids[i]`,
 /// took `actions[i]`, got `rewards[i]` and reached `next_observations[i·obs_dim ..]`.
-#[derive(Clone, PartialEq, prost::Message)]
+///
+/// Its `prost::Message` implementation is written out in `transition_codec.rs`, so that packed
+/// floats decode in one pass; each field's comment gives its tag and protobuf type, and a test
+/// holds the encoding equal, byte for byte, to prost's derived one for the same schema.
+#[derive(Clone, PartialEq, Default, Debug)]
 pub struct TransitionBatch {
-    #[prost(uint32, tag = "1")]
+    /// 1, `uint32`.
     pub protocol_version: u32,
-    #[prost(string, tag = "2")]
+    /// 2, `string`.
     pub run_id: String,
-    #[prost(uint32, tag = "3")]
+    /// 3, `uint32`.
     pub actor_id: u32,
-    /// Increases by one per batch from each actor process; restarts at 0 with the process.
-    #[prost(uint64, tag = "4")]
+    /// 4, `uint64`. Increases by one per batch from each actor process; restarts at 0 with
+    /// the process.
     pub sequence: u64,
-    /// A fresh random value per actor process, so a restarted actor's sequence is not taken for
-    /// a replay of the old one's.
-    #[prost(uint64, tag = "5")]
+    /// 5, `uint64`. A fresh random value per actor process, so a restarted actor's sequence is
+    /// not taken for a replay of the old one's.
     pub incarnation: u64,
-    #[prost(uint32, tag = "6")]
+    /// 6, `uint32`.
     pub obs_dim: u32,
-    #[prost(uint32, repeated, tag = "7")]
+    /// 7, `repeated uint32` (packed).
     pub env_ids: Vec<u32>,
-    #[prost(float, repeated, tag = "8")]
+    /// 8, `repeated float` (packed).
     pub observations: Vec<f32>,
-    #[prost(float, repeated, tag = "9")]
+    /// 9, `repeated float` (packed).
     pub next_observations: Vec<f32>,
-    #[prost(uint32, repeated, tag = "10")]
+    /// 10, `repeated uint32` (packed).
     pub actions: Vec<u32>,
-    #[prost(float, repeated, tag = "11")]
+    /// 11, `repeated float` (packed).
     pub rewards: Vec<f32>,
-    #[prost(bool, repeated, tag = "12")]
+    /// 12, `repeated bool` (packed).
     pub terminated: Vec<bool>,
-    #[prost(bool, repeated, tag = "13")]
+    /// 13, `repeated bool` (packed).
     pub truncated: Vec<bool>,
-    /// Initial priorities for prioritised replay; empty for none.
-    #[prost(float, repeated, tag = "14")]
+    /// 14, `repeated float` (packed). Initial priorities for prioritised replay; empty for none.
     pub priorities: Vec<f32>,
-    /// Version of the weights that chose these actions.
-    #[prost(uint64, tag = "15")]
+    /// 15, `uint64`. Version of the weights that chose these actions.
     pub weights_version: u64,
-    /// Physics steps these transitions took (decisions × action repeat).
-    #[prost(uint64, tag = "16")]
+    /// 16, `uint64`. Physics steps these transitions took (decisions × action repeat).
     pub physics_steps: u64,
-    /// The number of transitions. Encoded last, so a message cut short anywhere lacks it and
-    /// fails validation (protobuf itself cannot tell a truncated message from a short one).
-    #[prost(uint32, tag = "17")]
+    /// 17, `uint32`. The number of transitions. Encoded last, so a message cut short anywhere
+    /// lacks it and fails validation (protobuf itself cannot tell a truncated message from a
+    /// short one).
     pub count: u32,
 }
 

@@ -46,6 +46,14 @@ pub enum ProtoError {
     MissingSettings,
     #[error("batch {sequence} from actor {actor} lies past the insert credit the learner granted it")]
     OverCredit { actor: u32, sequence: u64 },
+    #[error("incarnation {incarnation} of actor {actor} was replaced or left: its batches are not taken again")]
+    RetiredIncarnation { actor: u32, incarnation: u64 },
+    #[error(
+        "incarnation {incarnation} claims actor {actor} while another incarnation of it is sending: a new process takes an id over once the old one has been silent for 2 s"
+    )]
+    IncarnationBusy { actor: u32, incarnation: u64 },
+    #[error("key `{key}` does not end in a node id written in decimal without sign or leading zeros")]
+    NonCanonicalId { key: String },
 }
 
 impl ProtoError {
@@ -70,6 +78,9 @@ impl ProtoError {
             ProtoError::NotLive { .. } => "not_live",
             ProtoError::MissingSettings => "missing_settings",
             ProtoError::OverCredit { .. } => "over_credit",
+            ProtoError::NonCanonicalId { .. } => "non_canonical_id",
+            ProtoError::RetiredIncarnation { .. } => "retired_incarnation",
+            ProtoError::IncarnationBusy { .. } => "incarnation_busy",
         }
     }
 }
@@ -109,7 +120,7 @@ pub fn check_envelope(version: u32, run_id: &str, expected_run: &str) -> Result<
 /// Checks that the actor id in a message's key (`crawler/<run>/<kind>/<id>`) is the one in
 /// its payload, so one actor cannot speak for another.
 pub fn check_sender(key: &str, payload_actor: u32) -> Result<(), ProtoError> {
-    if crate::keys::trailing_id(key) == Some(payload_actor) {
+    if crate::keys::trailing_id(key)? == payload_actor {
         Ok(())
     } else {
         Err(ProtoError::KeyMismatch { key: quoted_prefix(key), payload: payload_actor })
@@ -400,22 +411,58 @@ pub enum SequenceCheck {
     NewIncarnation,
 }
 
+/// Incarnations remembered as retired, across all actors: enough for every actor of a large
+/// run to restart many times, small enough to bound the table.
+pub const RETIRED_INCARNATIONS: usize = 4096;
+
+/// How long an actor's incarnation must have sent nothing before a new one takes its id over:
+/// longer than any pause of a working actor, shorter than a process restart.
+pub const INCARNATION_HANDOVER: std::time::Duration = std::time::Duration::from_secs(2);
+
 /// Tracks each actor's last sequence number per process incarnation: rejects replays, counts
-/// gaps.
+/// gaps. A new incarnation takes over a live id only once the current one has been silent for
+/// [`INCARNATION_HANDOVER`] (a restarted process), so a sender that announces itself under a
+/// working actor's id takes nothing over. An incarnation that was replaced, or whose actor
+/// left, is retired and refused from then on, so recorded batches of an earlier process cannot
+/// be played back.
 #[derive(Debug, Default, Clone)]
 pub struct SequenceTracker {
-    last: HashMap<u32, (u64, u64)>,
+    last: HashMap<u32, Last>,
+    retired: std::collections::HashSet<(u32, u64)>,
+    retired_order: std::collections::VecDeque<(u32, u64)>,
+}
+
+/// An actor's current incarnation, its last accepted sequence number and when it came.
+#[derive(Debug, Clone, Copy)]
+struct Last {
+    incarnation: u64,
+    sequence: u64,
+    at: std::time::Instant,
 }
 
 impl SequenceTracker {
-    /// Forgets an actor that left, so the tracker holds only live actors.
+    /// Forgets an actor that left, so the tracker holds only live actors; its incarnation
+    /// is retired.
     pub fn forget(&mut self, actor: u32) {
-        self.last.remove(&actor);
+        if let Some(last) = self.last.remove(&actor) {
+            self.retire(actor, last.incarnation);
+        }
+    }
+
+    fn retire(&mut self, actor: u32, incarnation: u64) {
+        if self.retired.insert((actor, incarnation)) {
+            self.retired_order.push_back((actor, incarnation));
+            if self.retired_order.len() > RETIRED_INCARNATIONS
+                && let Some(oldest) = self.retired_order.pop_front()
+            {
+                self.retired.remove(&oldest);
+            }
+        }
     }
 
     /// The process incarnation and last accepted sequence number of `actor`, if any.
     pub fn last(&self, actor: u32) -> Option<(u64, u64)> {
-        self.last.get(&actor).copied()
+        self.last.get(&actor).map(|last| (last.incarnation, last.sequence))
     }
 
     /// Actors tracked.
@@ -427,21 +474,53 @@ impl SequenceTracker {
         self.last.is_empty()
     }
 
-    pub fn check(&mut self, actor: u32, incarnation: u64, sequence: u64) -> Result<SequenceCheck, ProtoError> {
+    /// Incarnations remembered as retired (at most [`RETIRED_INCARNATIONS`]).
+    pub fn retired(&self) -> usize {
+        self.retired.len()
+    }
+
+    /// Refuses an incarnation that was retired.
+    pub fn refuse_retired(&self, actor: u32, incarnation: u64) -> Result<(), ProtoError> {
+        if self.retired.contains(&(actor, incarnation)) {
+            Err(ProtoError::RetiredIncarnation { actor, incarnation })
+        } else {
+            Ok(())
+        }
+    }
+
+    /// Checks batch `sequence` of `incarnation` from `actor`, arriving at `now`, and records it
+    /// when it is taken.
+    pub fn check(
+        &mut self,
+        actor: u32,
+        incarnation: u64,
+        sequence: u64,
+        now: std::time::Instant,
+    ) -> Result<SequenceCheck, ProtoError> {
+        self.refuse_retired(actor, incarnation)?;
+        let taken = Last { incarnation, sequence, at: now };
         match self.last.get(&actor).copied() {
-            Some((inc, last)) if inc == incarnation => {
-                if sequence <= last {
-                    return Err(ProtoError::Replayed { actor, got: sequence, last });
+            Some(last) if last.incarnation == incarnation => {
+                if sequence <= last.sequence {
+                    return Err(ProtoError::Replayed { actor, got: sequence, last: last.sequence });
                 }
-                self.last.insert(actor, (incarnation, sequence));
-                Ok(if sequence == last + 1 {
+                self.last.insert(actor, taken);
+                Ok(if sequence == last.sequence + 1 {
                     SequenceCheck::InOrder
                 } else {
-                    SequenceCheck::Gap { missing: sequence - last - 1 }
+                    SequenceCheck::Gap { missing: sequence - last.sequence - 1 }
                 })
             }
-            _ => {
-                self.last.insert(actor, (incarnation, sequence));
+            Some(last) => {
+                if now.saturating_duration_since(last.at) < INCARNATION_HANDOVER {
+                    return Err(ProtoError::IncarnationBusy { actor, incarnation });
+                }
+                self.retire(actor, last.incarnation);
+                self.last.insert(actor, taken);
+                Ok(SequenceCheck::NewIncarnation)
+            }
+            None => {
+                self.last.insert(actor, taken);
                 Ok(SequenceCheck::NewIncarnation)
             }
         }
@@ -566,14 +645,42 @@ mod tests {
     #[test]
     fn replays_are_rejected_and_gaps_counted() {
         let mut tracker = SequenceTracker::default();
-        assert_eq!(tracker.check(1, 7, 0), Ok(SequenceCheck::NewIncarnation));
-        assert_eq!(tracker.check(1, 7, 1), Ok(SequenceCheck::InOrder));
-        assert_eq!(tracker.check(1, 7, 4), Ok(SequenceCheck::Gap { missing: 2 }));
-        assert_eq!(tracker.check(1, 7, 4).unwrap_err().kind(), "replayed");
-        assert_eq!(tracker.check(1, 7, 2).unwrap_err().kind(), "replayed");
-        // A restarted actor starts again at 0 under a new incarnation.
-        assert_eq!(tracker.check(1, 8, 0), Ok(SequenceCheck::NewIncarnation));
-        assert_eq!(tracker.check(2, 7, 0), Ok(SequenceCheck::NewIncarnation));
+        let t0 = std::time::Instant::now();
+        assert_eq!(tracker.check(1, 7, 0, t0), Ok(SequenceCheck::NewIncarnation));
+        assert_eq!(tracker.check(1, 7, 1, t0), Ok(SequenceCheck::InOrder));
+        assert_eq!(tracker.check(1, 7, 4, t0), Ok(SequenceCheck::Gap { missing: 2 }));
+        assert_eq!(tracker.check(1, 7, 4, t0).unwrap_err().kind(), "replayed");
+        assert_eq!(tracker.check(1, 7, 2, t0).unwrap_err().kind(), "replayed");
+        // A restarted actor starts again at 0 under a new incarnation, once the old one is quiet.
+        assert_eq!(tracker.check(1, 8, 0, t0).unwrap_err().kind(), "incarnation_busy");
+        assert_eq!(tracker.check(1, 8, 0, t0 + INCARNATION_HANDOVER), Ok(SequenceCheck::NewIncarnation));
+        assert_eq!(tracker.check(2, 7, 0, t0), Ok(SequenceCheck::NewIncarnation));
+    }
+
+    #[test]
+    fn a_replaced_or_departed_incarnation_never_comes_back() {
+        let mut tracker = SequenceTracker::default();
+        let t0 = std::time::Instant::now();
+        let later = t0 + INCARNATION_HANDOVER;
+        assert!(tracker.check(1, 7, 5, t0).is_ok());
+        // Incarnation 9 takes actor 1 over after 7 went quiet; 7's batches played back then
+        // are refused, whatever their sequence.
+        assert_eq!(tracker.check(1, 9, 0, later), Ok(SequenceCheck::NewIncarnation));
+        for sequence in [0, 3, 6, 1000] {
+            assert_eq!(tracker.check(1, 7, sequence, later).unwrap_err().kind(), "retired_incarnation");
+        }
+        // An actor that leaves retires its incarnation too.
+        tracker.forget(1);
+        assert_eq!(tracker.check(1, 9, 1, later).unwrap_err().kind(), "retired_incarnation");
+        assert_eq!(tracker.check(1, 11, 0, later), Ok(SequenceCheck::NewIncarnation));
+        // The retired set is bounded: the oldest are forgotten first.
+        let mut at = later;
+        for incarnation in 100..100 + RETIRED_INCARNATIONS as u64 + 10 {
+            at += INCARNATION_HANDOVER;
+            tracker.check(2, incarnation, 0, at).unwrap();
+        }
+        assert_eq!(tracker.retired(), RETIRED_INCARNATIONS);
+        assert!(tracker.refuse_retired(1, 7).is_ok(), "the oldest retirement was forgotten");
     }
 
     #[test]
@@ -652,7 +759,8 @@ mod tests {
     fn a_node_speaks_only_for_its_own_id() {
         assert!(check_sender("crawler/r/transitions/3", 3).is_ok());
         assert_eq!(check_sender("crawler/r/transitions/3", 4).unwrap_err().kind(), "key_mismatch");
-        assert_eq!(check_sender("crawler/r/transitions/x", 0).unwrap_err().kind(), "key_mismatch");
+        assert_eq!(check_sender("crawler/r/transitions/x", 0).unwrap_err().kind(), "non_canonical_id");
+        assert_eq!(check_sender("crawler/r/transitions/03", 3).unwrap_err().kind(), "non_canonical_id");
     }
 
     #[test]

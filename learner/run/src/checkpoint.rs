@@ -18,7 +18,7 @@
 
 use std::collections::BTreeMap;
 use std::fs;
-use std::io::{BufWriter, Write};
+use std::io::{BufWriter, Read, Write};
 use std::path::{Path, PathBuf};
 
 use crawler_actor::env::OBS_LAYOUT_VERSION;
@@ -36,6 +36,11 @@ const TARGET: &str = "target.safetensors";
 const OPTIMIZER: &str = "optimizer.safetensors";
 const REPLAY: &str = "replay.bin";
 const PREFIX: &str = "step-";
+/// The most bytes a `meta.json` may hold (the run's config and the file table take a few kB).
+const MAX_META_BYTES: u64 = 16 << 20;
+/// The largest counter a checkpoint may hold: 2⁵³, exact in every JSON reader, and beyond
+/// anything a run reaches (10⁶ updates a second for 285 years).
+pub const MAX_COUNTER: u64 = 1 << 53;
 const TEMP_MARKER: &str = ".partial-";
 
 /// The fail point between writing a checkpoint's files and renaming them into place, so a
@@ -52,6 +57,8 @@ pub enum CheckpointError {
     Corrupt { path: PathBuf, reason: String },
     #[error("checkpoint file {path} passed its checksum but is not this version's replay layout: {reason}")]
     ReplayLayout { path: PathBuf, reason: String },
+    #[error("checkpoint file {path} holds a replay that fails its checks: {reason}")]
+    ReplayContent { path: PathBuf, reason: String },
     #[error("checkpoint {path} does not fit this run: its {what} is {found}, this run needs {expected}")]
     Mismatch { path: PathBuf, what: &'static str, found: String, expected: String },
     #[error("no checkpoint found in {0}; train first, or point at a `step-*` directory")]
@@ -115,6 +122,34 @@ pub struct CheckpointMeta {
     /// empty for a checkpoint the learner wrote from its own weights.
     #[serde(default, skip_serializing_if = "Vec::is_empty")]
     pub averaged_from: Vec<String>,
+}
+
+impl CheckpointMeta {
+    /// Checks every counter and clock against what a run can reach, as wire data is checked:
+    /// a resumed run takes them as they are.
+    pub fn check_ranges(&self) -> Result<(), String> {
+        let p = &self.progress;
+        for (field, value) in [
+            ("progress.updates", p.updates),
+            ("progress.env_steps", p.env_steps),
+            ("progress.physics_steps", p.physics_steps),
+            ("progress.weights_version", p.weights_version),
+            ("progress.learner_session", p.learner_session),
+            ("adam_step", self.adam_step),
+        ] {
+            if value > MAX_COUNTER {
+                return Err(format!("{field} is {value}, beyond the {MAX_COUNTER} a run can reach"));
+            }
+        }
+        if !(0.0..=1.0).contains(&p.epsilon) {
+            return Err(format!("progress.epsilon is {}, outside [0, 1]", p.epsilon));
+        }
+        // A century of training.
+        if !(0.0..=3.2e9).contains(&p.train_seconds) {
+            return Err(format!("progress.train_seconds is {}, outside [0, 3.2e9]", p.train_seconds));
+        }
+        Ok(())
+    }
 }
 
 /// A loaded checkpoint.
@@ -388,7 +423,9 @@ const RELOADS_AFTER_PRUNING: usize = 8;
 /// checkpoint of the same step) while it is read. Then the newest is taken again; an error is
 /// reported only for a checkpoint that stayed in place while it failed to load.
 pub fn load(path: &Path) -> Result<Checkpoint, CheckpointError> {
-    if path.join(META).is_file() {
+    // Any entry named meta.json makes this one checkpoint, so that a meta.json that is no
+    // regular file is refused by name rather than read as a directory of checkpoints.
+    if path.join(META).symlink_metadata().is_ok() {
         return load_one(path.to_path_buf());
     }
     let mut reloads = 0;
@@ -406,10 +443,10 @@ pub fn load(path: &Path) -> Result<Checkpoint, CheckpointError> {
             }
             Err(error) => return Err(error),
         };
-        let meta_before = fs::read(newest.join(META)).ok();
+        let meta_before = read_capped(&newest.join(META), MAX_META_BYTES).ok();
         match load_one(newest.clone()) {
             Err(error) if reloads < RELOADS_AFTER_PRUNING => {
-                let meta_after = fs::read(newest.join(META)).ok();
+                let meta_after = read_capped(&newest.join(META), MAX_META_BYTES).ok();
                 if meta_before.is_some() && meta_before == meta_after {
                     return Err(error);
                 }
@@ -431,8 +468,9 @@ fn holds_checkpoint_names(dir: &Path) -> bool {
 /// Loads the checkpoint in the `step-*` directory `path`.
 fn load_one(path: PathBuf) -> Result<Checkpoint, CheckpointError> {
     let meta_path = path.join(META);
-    let meta_bytes = fs::read(&meta_path).map_err(io("read", &meta_path))?;
+    let meta_bytes = read_capped(&meta_path, MAX_META_BYTES)?;
     let meta: CheckpointMeta = serde_json::from_slice(&meta_bytes).map_err(|e| corrupt(&meta_path, e))?;
+    meta.check_ranges().map_err(|reason| corrupt(&meta_path, reason))?;
     for (what, found, expected) in [
         ("format version", meta.format, CHECKPOINT_FORMAT),
         ("observation layout version", meta.obs_layout_version, OBS_LAYOUT_VERSION),
@@ -447,15 +485,27 @@ fn load_one(path: PathBuf) -> Result<Checkpoint, CheckpointError> {
         }
     }
     meta.network.validate().map_err(|e| corrupt(&meta_path, e))?;
-    let read = |file: &str| -> Result<Vec<u8>, CheckpointError> {
+    let n = meta.network.num_params();
+    // Safetensors headers name a few tensors; 1 MiB is far more than they take.
+    let header = 1 << 20;
+    let read = |file: &str, values: usize| -> Result<Vec<u8>, CheckpointError> {
         let digest = meta.files.get(file).ok_or_else(|| corrupt(&meta_path, format!("no entry for {file}")))?;
+        let most = (values as u64).saturating_mul(4).saturating_add(header);
+        if digest.bytes > most {
+            return Err(corrupt(
+                &meta_path,
+                format!(
+                    "files.{file}.bytes is {}, more than the {most} its network's {values} values take",
+                    digest.bytes
+                ),
+            ));
+        }
         read_verified(&path.join(file), digest)
     };
-    let n = meta.network.num_params();
-    let online = decode_weights(&read(WEIGHTS)?, &meta.network, &path.join(WEIGHTS))?;
-    let target = decode_weights(&read(TARGET)?, &meta.network, &path.join(TARGET))?;
+    let online = decode_weights(&read(WEIGHTS, n)?, &meta.network, &path.join(WEIGHTS))?;
+    let target = decode_weights(&read(TARGET, n)?, &meta.network, &path.join(TARGET))?;
     let optimizer_path = path.join(OPTIMIZER);
-    let optimizer = read(OPTIMIZER)?;
+    let optimizer = read(OPTIMIZER, 2 * n)?;
     let tensors = SafeTensors::deserialize(&optimizer).map_err(|e| corrupt(&optimizer_path, e))?;
     let flat = |name: &str| -> Result<Vec<f32>, CheckpointError> {
         let view = tensors.tensor(name).map_err(|e| corrupt(&optimizer_path, e))?;
@@ -469,10 +519,31 @@ fn load_one(path: PathBuf) -> Result<Checkpoint, CheckpointError> {
     Ok(Checkpoint { path, meta, online, target, exp_avg, exp_avg_sq })
 }
 
-/// A checkpoint file's bytes, checked against its size and checksum.
+/// A checkpoint file's bytes, checked against its size and checksum. The size is checked
+/// before anything is read, so a file that links to a device or grew past its entry costs
+/// nothing.
 fn read_verified(path: &Path, digest: &FileDigest) -> Result<Vec<u8>, CheckpointError> {
-    let bytes = fs::read(path).map_err(io("read", path))?;
+    let bytes = read_capped(path, digest.bytes)?;
     verify(path, &bytes, digest)?;
+    Ok(bytes)
+}
+
+/// Reads a regular file of at most `most` bytes (links are followed; devices, pipes and
+/// directories are refused), reading no more than that even if it grows meanwhile.
+fn read_capped(path: &Path, most: u64) -> Result<Vec<u8>, CheckpointError> {
+    let file = fs::File::open(path).map_err(io("open", path))?;
+    let metadata = file.metadata().map_err(io("inspect", path))?;
+    if !metadata.is_file() {
+        return Err(corrupt(path, "not a regular file"));
+    }
+    if metadata.len() > most {
+        return Err(corrupt(path, format!("{} bytes, more than the {most} it may hold", metadata.len())));
+    }
+    let mut bytes = Vec::with_capacity(metadata.len() as usize);
+    file.take(most.saturating_add(1)).read_to_end(&mut bytes).map_err(io("read", path))?;
+    if bytes.len() as u64 > most {
+        return Err(corrupt(path, format!("grew past the {most} bytes it may hold while read")));
+    }
     Ok(bytes)
 }
 
@@ -510,9 +581,15 @@ pub fn decode_weights(bytes: &[u8], spec: &NetworkSpec, path: &Path) -> Result<V
 
 /// The replay snapshot of a checkpoint (`replay.bin`, checked against its size and checksum)
 /// and its path, or None when the checkpoint holds no replay.
-pub fn replay_bytes(checkpoint: &Checkpoint) -> Result<Option<(PathBuf, Vec<u8>)>, CheckpointError> {
+/// A snapshot whose entry says it is over `most` bytes is not read: it cannot be a replay of
+/// the run's configuration.
+pub fn replay_bytes(checkpoint: &Checkpoint, most: u64) -> Result<Option<(PathBuf, Vec<u8>)>, CheckpointError> {
     let Some(digest) = checkpoint.meta.files.get(REPLAY) else { return Ok(None) };
     let path = checkpoint.path.join(REPLAY);
+    if digest.bytes > most {
+        let reason = format!("{} bytes, more than the {most} a replay of this run's size takes", digest.bytes);
+        return Err(CheckpointError::ReplayContent { path, reason });
+    }
     let bytes = read_verified(&path, digest)?;
     Ok(Some((path, bytes)))
 }

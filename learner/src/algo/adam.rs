@@ -65,7 +65,9 @@ impl FlatAdam {
         let params = unsafe { tensor_memory::f32s_mut(params) };
         self.step += 1;
         let AdamConfig { lr, beta1, beta2, eps } = self.config;
-        let t = self.step as i32;
+        // Past i32::MAX the bias corrections are 1 to the last bit; a wrapped exponent would
+        // make them 0 and every step infinite.
+        let t = i32::try_from(self.step).unwrap_or(i32::MAX);
         let step = AdamStep {
             step_size: (lr / (1.0 - beta1.powi(t))) as f32,
             bias_correction2_sqrt: (1.0 - beta2.powi(t)).sqrt() as f32,

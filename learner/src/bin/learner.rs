@@ -129,7 +129,9 @@ fn run_to_start(args: &mut Args) -> anyhow::Result<(TrainConfig, String, Option<
             let runs_dir = runs_dir_of(args)?;
             let checkpoint = checkpoint::load(&runs_dir.join(run).join("checkpoints"))
                 .with_context(|| format!("resuming run `{run}`"))?;
-            let config = TrainConfig::from_json(&checkpoint.meta.config, "the checkpoint's config", &args.overrides)?;
+            let mut config =
+                TrainConfig::from_json(&checkpoint.meta.config, "the checkpoint's config", &args.overrides)?;
+            keep_access_to_the_command_line(args, &mut config, &checkpoint.path.join("meta.json"))?;
             (config, run.clone(), Some(checkpoint))
         }
         None => {
@@ -137,6 +139,32 @@ fn run_to_start(args: &mut Args) -> anyhow::Result<(TrainConfig, String, Option<
             (config, args.run.clone().unwrap_or_else(default_run_id), None)
         }
     })
+}
+
+/// A resumed run's config comes from its checkpoint, a file anyone with write access to the
+/// runs directory may have edited: it never widens who may connect. Its
+/// `learner.allow_plain_remote` holds only when the command line says so too; with a plain
+/// listener beyond loopback the resume is refused, naming the flag.
+fn keep_access_to_the_command_line(args: &Args, config: &mut TrainConfig, meta: &Path) -> anyhow::Result<()> {
+    let said_here = args.allow_plain_remote
+        || args
+            .overrides
+            .iter()
+            .any(|o| o.split('=').next().is_some_and(|key| key.trim() == "learner.allow_plain_remote"));
+    if !config.learner.allow_plain_remote || said_here {
+        return Ok(());
+    }
+    if args.tls.files()?.is_none() && service::listens_beyond_loopback(&config.learner.listen) {
+        bail!(
+            "{}: learner.allow_plain_remote = true with learner.listen {:?}; a checkpoint does not decide who may \
+             connect. Pass --allow-plain-remote to resume with that listener, or \
+             --set 'learner.listen=[\"tcp/127.0.0.1:7447\"]' to resume on loopback",
+            meta.display(),
+            config.learner.listen
+        );
+    }
+    config.learner.allow_plain_remote = false;
+    Ok(())
 }
 
 /// Who may connect, and the zenoh settings for it: mutual TLS with roles by certificate, or

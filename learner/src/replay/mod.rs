@@ -33,6 +33,37 @@ pub struct StreamId {
     pub env: u32,
 }
 
+/// What a replay read from a file may hold: what ingest validation lets into a live one.
+#[derive(Debug, Clone)]
+pub struct SnapshotBounds {
+    /// `[low, high]` of each observation value.
+    pub observation_range: Vec<[f32; 2]>,
+    pub max_abs_reward: f32,
+    pub num_actions: u32,
+}
+
+impl From<&crawler_proto::TransitionLimits> for SnapshotBounds {
+    fn from(limits: &crawler_proto::TransitionLimits) -> Self {
+        Self {
+            observation_range: limits.observation_range.clone(),
+            max_abs_reward: limits.max_abs_reward,
+            num_actions: limits.num_actions,
+        }
+    }
+}
+
+impl SnapshotBounds {
+    /// The first value outside its range (or not finite), with its index.
+    fn first_outside(&self, observation: &[f32]) -> Option<(usize, f32)> {
+        observation
+            .iter()
+            .zip(&self.observation_range)
+            .enumerate()
+            .find(|(_, (value, [low, high]))| !(*low..=*high).contains(*value))
+            .map(|(index, (value, _))| (index, *value))
+    }
+}
+
 /// One transition as it arrives.
 #[derive(Debug, Clone, Copy)]
 pub struct Transition<'a> {
@@ -210,6 +241,89 @@ impl Replay {
             self.pending.insert(stream, Pending { slot: next as u32, stamp: self.stamps[next] });
         }
         Ok(())
+    }
+
+    /// Checks a replay read from a file, field by field, as the wire's data is checked: the
+    /// shape against this run's `config` and `obs_dim`, every index inside the ring, every
+    /// count consistent with the flags, every stored value finite and inside `bounds`. A
+    /// snapshot that passes samples as a replay filled by validated actors would. The error
+    /// names the field.
+    pub fn check_snapshot(
+        &mut self,
+        config: &ReplayConfig,
+        obs_dim: usize,
+        bounds: &SnapshotBounds,
+    ) -> Result<(), String> {
+        let capacity = self.capacity;
+        if capacity != config.capacity || self.n_step != config.n_step || obs_dim != self.obs_dim {
+            return Err(format!(
+                "capacity {capacity}, n_step {}, obs_dim {}: this run has {}, {} and {obs_dim}",
+                self.n_step, self.obs_dim, config.capacity, config.n_step
+            ));
+        }
+        if self.sampler.prioritized_config() != config.prioritized {
+            return Err("sampler differs from replay.prioritized".into());
+        }
+        let lengths = [
+            ("observations", self.observations.len(), capacity * obs_dim),
+            ("actions", self.actions.len(), capacity),
+            ("rewards", self.rewards.len(), capacity),
+            ("flags", self.flags.len(), capacity),
+            ("next", self.next.len(), capacity),
+            ("stamps", self.stamps.len(), capacity),
+        ];
+        if let Some((field, got, expected)) = lengths.iter().find(|(_, got, expected)| got != expected) {
+            return Err(format!("{field} holds {got} values, a replay of {capacity} slots {expected}"));
+        }
+        if self.cursor >= capacity || self.filled > capacity {
+            return Err(format!("cursor {} / filled {} outside {capacity} slots", self.cursor, self.filled));
+        }
+        let mut transitions = 0;
+        for slot in 0..capacity {
+            let flags = self.flags[slot];
+            if flags & !(HAS_TRANSITION | TERMINATED | TRUNCATED) != 0 || self.stamps[slot] > self.writes {
+                return Err(format!(
+                    "slot {slot}: flags {flags:#x}, stamp {} of {} writes",
+                    self.stamps[slot], self.writes
+                ));
+            }
+            if slot >= self.filled {
+                if flags != 0 {
+                    return Err(format!("slot {slot}: never written, yet flags {flags:#x}"));
+                }
+                continue;
+            }
+            if let Some((index, value)) = bounds.first_outside(self.observation(slot)) {
+                return Err(format!("slot {slot}: observation value {index} is {value}, outside its range"));
+            }
+            if flags & HAS_TRANSITION != 0 {
+                transitions += 1;
+                let (action, reward, next) = (self.actions[slot], self.rewards[slot], self.next[slot] as usize);
+                let reward_ok = reward.is_finite() && reward.abs() <= bounds.max_abs_reward;
+                if u32::from(action) >= bounds.num_actions || !reward_ok || next >= self.filled {
+                    return Err(format!("slot {slot}: action {action}, reward {reward}, next slot {next}"));
+                }
+            }
+        }
+        if transitions != self.transitions {
+            return Err(format!("transitions says {}, the flags hold {transitions}", self.transitions));
+        }
+        if let Some((stream, pending)) = self.pending.iter().find(|(_, p)| p.slot as usize >= capacity) {
+            return Err(format!("stream {stream:?} continues from slot {}, outside the ring", pending.slot));
+        }
+        self.sampler.check_snapshot(capacity)
+    }
+
+    /// Forgets the unfinished episodes of every actor `keep` refuses (those that left): their
+    /// next transitions will never come, and a table kept per stream would otherwise grow
+    /// with every actor id ever seen.
+    pub fn release_streams(&mut self, keep: impl Fn(u32) -> bool) {
+        self.pending.retain(|stream, _| keep(stream.actor));
+    }
+
+    /// Streams with an unfinished episode.
+    pub fn open_streams(&self) -> usize {
+        self.pending.len()
     }
 
     fn observation(&self, slot: usize) -> &[f32] {

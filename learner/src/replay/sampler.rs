@@ -74,6 +74,19 @@ impl Sampler {
         }
     }
 
+    /// Checks a sampler read from a file (see [`SumTree::check_snapshot`]).
+    pub(super) fn check_snapshot(&mut self, capacity: usize) -> Result<(), String> {
+        match self {
+            Self::Uniform => Ok(()),
+            Self::Prioritized(p) => {
+                if !(p.max_priority.is_finite() && p.max_priority > 0.0) {
+                    return Err(format!("sampler max_priority {}", p.max_priority));
+                }
+                p.tree.check_snapshot(capacity)
+            }
+        }
+    }
+
     pub(super) fn memory_bytes(&self) -> usize {
         match self {
             Self::Uniform => 0,

@@ -52,6 +52,34 @@ impl SumTree {
     pub fn memory_bytes(&self) -> usize {
         self.nodes.capacity() * size_of::<f64>()
     }
+
+    /// Checks a tree read from a file against the `capacity` it serves: its shape, and every
+    /// leaf finite and non-negative (nothing stored beyond `capacity`). The inner sums are
+    /// then recomputed from the leaves rather than trusted.
+    pub fn check_snapshot(&mut self, capacity: usize) -> Result<(), String> {
+        let leaves = capacity.max(1).next_power_of_two();
+        if self.leaves != leaves || self.nodes.len() != 2 * leaves {
+            return Err(format!(
+                "sampler tree has {} leaves and {} nodes, a replay of {capacity} slots needs {leaves} and {}",
+                self.leaves,
+                self.nodes.len(),
+                2 * leaves
+            ));
+        }
+        for (index, &priority) in self.nodes[leaves..].iter().enumerate() {
+            let allowed = if index < capacity { priority.is_finite() && priority >= 0.0 } else { priority == 0.0 };
+            if !allowed {
+                return Err(format!("sampler priority {priority} at slot {index}"));
+            }
+        }
+        for node in (1..leaves).rev() {
+            self.nodes[node] = self.nodes[2 * node] + self.nodes[2 * node + 1];
+        }
+        if !self.total().is_finite() {
+            return Err(format!("sampler priorities sum to {}", self.total()));
+        }
+        Ok(())
+    }
 }
 
 #[cfg(test)]

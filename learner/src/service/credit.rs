@@ -146,7 +146,7 @@ mod tests {
         assert!(ledger.admit(1, 55, 0, t0));
         assert!(!ledger.admit(1, 57, 0, t0), "a second new process of the same id waits");
         assert!(ledger.due("r", 1024, 256, &live, &sequences, t0).is_empty(), "nothing changed");
-        sequences.check(1, 55, 0).unwrap();
+        sequences.check(1, 55, 0, t0).unwrap();
         let due = ledger.due("r", 1024, 256, &live, &sequences, t0);
         assert_eq!(due.len(), 1, "{due:?}");
         assert_eq!((due[0].actor_id, due[0].incarnation, due[0].next_sequence, due[0].window), (1, 55, 1, 2));
@@ -159,7 +159,7 @@ mod tests {
         // Unchanged credits go out again after the refresh.
         assert_eq!(ledger.due("r", 0, 256, &live, &sequences, t0 + CREDIT_REFRESH).len(), 2);
         // A new process of the same id starts from its own grant.
-        sequences.check(1, 56, 0).unwrap();
+        sequences.check(1, 56, 0, t0 + proto::validate::INCARNATION_HANDOVER).unwrap();
         ledger.due("r", 256, 256, &live, &sequences, t0);
         assert!(ledger.admit(1, 56, 1, t0) && !ledger.admit(1, 56, 2, t0));
         // Without a limit, windows are as wide as the wire carries.

@@ -5,7 +5,7 @@
 //! short-lived mutexes. Transition batches go to the training thread through a bounded queue
 //! with `try_send`, so nothing here ever waits for training.
 
-use std::collections::{BTreeMap, BTreeSet};
+use std::collections::{BTreeMap, BTreeSet, VecDeque};
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::mpsc::{SyncSender, TrySendError};
 use std::sync::{Arc, Mutex, PoisonError};
@@ -51,11 +51,14 @@ pub(super) enum NodeKind {
 }
 
 /// The nodes holding a liveliness token, at most `max` of them: only their messages are kept,
-/// so every per-actor table is bounded by `max`.
+/// so every per-actor table is bounded by `max`. Tokens that arrive while every slot is taken
+/// wait, in arrival order and at most `max` of them, and take the slots that come free: a
+/// token event is never sent twice, so a node turned away and forgotten would stay out.
 #[derive(Debug, Default)]
 pub(super) struct LiveNodes {
     pub(super) actors: BTreeSet<u32>,
     evaluators: BTreeSet<u32>,
+    waiting: VecDeque<(NodeKind, u32)>,
     pub(super) max: usize,
 }
 
@@ -91,6 +94,9 @@ impl LiveNodes {
         if self.holds(kind, id) {
             Admission::AlreadyLive
         } else if self.actors.len() + self.evaluators.len() >= self.max {
+            if self.waiting.len() < self.max && !self.waiting.contains(&(kind, id)) {
+                self.waiting.push_back((kind, id));
+            }
             Admission::Full
         } else {
             self.set(kind).insert(id);
@@ -98,9 +104,18 @@ impl LiveNodes {
         }
     }
 
-    /// Whether the node was live.
-    fn leave(&mut self, kind: NodeKind, id: u32) -> bool {
-        self.set(kind).remove(&id)
+    /// Takes a node's token off the books. Returns whether it was live, and the waiting node
+    /// that took its slot, if any.
+    fn leave(&mut self, kind: NodeKind, id: u32) -> (bool, Option<(NodeKind, u32)>) {
+        self.waiting.retain(|&waiting| waiting != (kind, id));
+        if !self.set(kind).remove(&id) {
+            return (false, None);
+        }
+        let promoted = self.waiting.pop_front();
+        if let Some((kind, id)) = promoted {
+            self.set(kind).insert(id);
+        }
+        (true, promoted)
     }
 }
 
@@ -114,6 +129,9 @@ pub(super) struct Shared {
     pub(super) rejected: Mutex<BTreeMap<&'static str, u64>>,
     /// Liveliness tokens beyond `learner.max_actors`, ignored.
     pub(super) ignored_tokens: AtomicU64,
+    /// Actors that left since the training thread last looked: it releases their replay
+    /// streams.
+    pub(super) departed: Mutex<Vec<u32>>,
     /// Actor ids that have metric tags of their own.
     pub(super) tagged_actors: Mutex<BTreeSet<u32>>,
     pub(super) latest_weights: Mutex<Vec<u8>>,
@@ -218,17 +236,7 @@ pub(super) async fn serve(
         })
         .await
         .map_err(zenoh_error("declaring the weights queryable"))?;
-    let limits = TransitionLimits {
-        run_id: run_id.to_string(),
-        obs_dim: config.env.policy_input_dim() as u32,
-        num_actions: config.env.num_actions() as u32,
-        max_batch: proto::MAX_BATCH_TRANSITIONS,
-        envs_per_actor: config.actor.envs_per_actor as u32,
-        // One observation's ranges for each slot of the history.
-        observation_range: observation::observation_range(config.env.max_torque)
-            .repeat(config.env.observation_history as usize),
-        max_abs_reward: crawler_actor::env::Reward::max_abs_total(&config.env),
-    };
+    let limits = transition_limits(config, run_id);
     let transitions = session
         .declare_subscriber(keys::all_transitions(run_id))
         .callback(ingest_callback(limits, config.rate.limit_inserts, ingest, Arc::clone(shared)))
@@ -361,7 +369,11 @@ fn validated<M: FromNode + 'static>(
 /// leaves takes its sequence state with it; its view stays until a new node needs the room.
 fn liveliness_callback(shared: Arc<Shared>, kind: NodeKind) -> impl Fn(zenoh::sample::Sample) + Send + Sync + 'static {
     move |sample| {
-        let Some(id) = keys::trailing_id(sample.key_expr().as_str()) else { return };
+        let id = match keys::trailing_id(sample.key_expr().as_str()) {
+            Ok(id) => id,
+            // Counted, and never allowed near a live node's books.
+            Err(e) => return count_rejection(&shared, &e),
+        };
         let mut live = lock(&shared.live);
         match sample.kind() {
             SampleKind::Put => match live.admit(kind, id) {
@@ -373,32 +385,44 @@ fn liveliness_callback(shared: Arc<Shared>, kind: NodeKind) -> impl Fn(zenoh::sa
                             id,
                             max = live.max,
                             ignored,
-                            "more live nodes than learner.max_actors: ignoring this one"
+                            "more live nodes than learner.max_actors: this one waits for a free slot"
                         );
                     }
                 }
                 Admission::Admitted => {
-                    info!(id, ?kind, "node connected");
-                    // Views of actors that left stay for status.json until room is needed.
-                    let live_actors = live.actors.clone();
-                    let max = live.max;
                     drop(live);
-                    let mut views = lock(&shared.actors);
-                    if views.len() >= max {
-                        views.retain(|id, _| live_actors.contains(id));
-                    }
+                    connected(&shared, kind, id);
                 }
             },
             SampleKind::Delete => {
-                if live.leave(kind, id) {
+                let (was_live, promoted) = live.leave(kind, id);
+                drop(live);
+                if was_live {
                     info!(id, ?kind, "node left");
-                    drop(live);
                     if kind == NodeKind::Actor {
                         lock(&shared.sequences).forget(id);
+                        lock(&shared.departed).push(id);
                     }
+                }
+                if let Some((kind, id)) = promoted {
+                    connected(&shared, kind, id);
                 }
             }
         }
+    }
+}
+
+/// Logs a node that took a slot, and makes room among the views of actors that left.
+fn connected(shared: &Shared, kind: NodeKind, id: u32) {
+    info!(id, ?kind, "node connected");
+    // Views of actors that left stay for status.json until room is needed.
+    let (live_actors, max) = {
+        let live = lock(&shared.live);
+        (live.actors.clone(), live.max)
+    };
+    let mut views = lock(&shared.actors);
+    if views.len() >= max {
+        views.retain(|id, _| live_actors.contains(id));
     }
 }
 
@@ -438,6 +462,21 @@ fn record_episode(shared: &Shared, stats: proto::EpisodeStats) {
     debug!(actor = stats.actor_id, speed = stats.speed, distance = stats.distance, epsilon = stats.epsilon, "episode");
 }
 
+/// What a valid transition batch of this run holds.
+pub fn transition_limits(config: &TrainConfig, run_id: &str) -> TransitionLimits {
+    TransitionLimits {
+        run_id: run_id.to_string(),
+        obs_dim: config.env.policy_input_dim() as u32,
+        num_actions: config.env.num_actions() as u32,
+        max_batch: proto::MAX_BATCH_TRANSITIONS,
+        envs_per_actor: config.actor.envs_per_actor as u32,
+        // One observation's ranges for each slot of the history.
+        observation_range: observation::observation_range(config.env.max_torque)
+            .repeat(config.env.observation_history as usize),
+        max_abs_reward: crawler_actor::env::Reward::max_abs_total(&config.env),
+    }
+}
+
 /// Validates a transition batch, checks it against the actor's insert credit (when
 /// `limit_inserts`) and its sequence, and queues it for the training thread.
 fn ingest_callback(
@@ -449,7 +488,12 @@ fn ingest_callback(
     move |sample| {
         let batch = match proto::validate::transition_batch(&sample.payload().to_bytes(), &limits)
             .and_then(|batch| from_live_sender(&shared, sample.key_expr().as_str(), batch))
-        {
+            .and_then(|batch| {
+                // Before the credit check, so that a played-back batch cannot use up the
+                // introduction a restarted actor needs.
+                lock(&shared.sequences).refuse_retired(batch.actor_id, batch.incarnation)?;
+                Ok(batch)
+            }) {
             Ok(batch) => batch,
             Err(e) => return count_rejection(&shared, &e),
         };
@@ -461,7 +505,7 @@ fn ingest_callback(
             let error = proto::ProtoError::OverCredit { actor: batch.actor_id, sequence: batch.sequence };
             return count_rejection(&shared, &error);
         }
-        let check = lock(&shared.sequences).check(batch.actor_id, batch.incarnation, batch.sequence);
+        let check = lock(&shared.sequences).check(batch.actor_id, batch.incarnation, batch.sequence, Instant::now());
         match check {
             Err(e) => return count_rejection(&shared, &e),
             Ok(proto::validate::SequenceCheck::Gap { missing }) => {
@@ -510,10 +554,26 @@ mod tests {
         assert_eq!(live.admit(NodeKind::Actor, 1), Admission::Admitted);
         assert_eq!(live.admit(NodeKind::Actor, 2), Admission::Full);
         assert!(!live.holds(NodeKind::Actor, 2));
-        assert!(live.leave(NodeKind::Actor, 1));
-        assert!(!live.leave(NodeKind::Actor, 1));
-        assert_eq!(live.admit(NodeKind::Actor, 2), Admission::Admitted);
+        assert_eq!(live.leave(NodeKind::Actor, 1), (true, Some((NodeKind::Actor, 2))));
+        assert_eq!(live.leave(NodeKind::Actor, 1), (false, None));
+        assert!(live.holds(NodeKind::Actor, 2), "the node that waited takes the free slot");
         assert!(live.holds(NodeKind::Evaluator, 0) && !live.holds(NodeKind::Evaluator, 2));
+    }
+
+    #[test]
+    fn waiting_nodes_are_bounded_and_a_waiter_that_leaves_takes_no_slot() {
+        let mut live = LiveNodes { max: 2, ..LiveNodes::default() };
+        for id in 0..2 {
+            assert_eq!(live.admit(NodeKind::Actor, id), Admission::Admitted);
+        }
+        for id in 10..1000 {
+            assert_eq!(live.admit(NodeKind::Actor, id), Admission::Full);
+        }
+        assert_eq!(live.waiting.len(), 2, "squatters cannot queue without bound");
+        assert_eq!(live.leave(NodeKind::Actor, 10), (false, None));
+        assert_eq!(live.leave(NodeKind::Actor, 0), (true, Some((NodeKind::Actor, 11))));
+        assert_eq!(live.leave(NodeKind::Actor, 1), (true, None));
+        assert_eq!(live.admit(NodeKind::Actor, 5), Admission::Admitted);
     }
 
     #[test]

@@ -36,7 +36,7 @@ mod edge;
 mod telemetry;
 mod trainer;
 
-pub use edge::ActorView;
+pub use edge::{ActorView, transition_limits};
 pub use telemetry::Status;
 
 #[derive(Debug, thiserror::Error)]

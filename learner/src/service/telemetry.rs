@@ -26,6 +26,8 @@ pub struct Status {
     pub env_steps_per_second: f64,
     pub physics_steps: u64,
     pub replay_len: usize,
+    /// Actor crawlers with an episode open in replay (bounded by the live actors).
+    pub replay_open_streams: usize,
     pub weights_version: u64,
     pub loss: f64,
     pub mean_q: f64,
@@ -53,6 +55,7 @@ pub struct Status {
 pub(super) struct TrainingNow<'a> {
     pub progress: &'a crate::checkpoint::Progress,
     pub replay_len: usize,
+    pub replay_open_streams: usize,
     pub train_seconds: f64,
     pub last_checkpoint: Option<&'a Path>,
     pub samples_per_insert: Option<f64>,
@@ -140,6 +143,7 @@ impl Telemetry {
             env_steps_per_second: (progress.env_steps - self.status_counts.1) as f64 / seconds,
             physics_steps: progress.physics_steps,
             replay_len: now.replay_len,
+            replay_open_streams: now.replay_open_streams,
             weights_version: progress.weights_version,
             loss: self.last_loss.0,
             mean_q: self.last_loss.1,

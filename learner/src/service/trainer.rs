@@ -106,13 +106,16 @@ impl<'a> Trainer<'a> {
             dqn.restore(checkpoint)?;
             progress = checkpoint.meta.progress.clone();
             // The file's size and CRC are checked first, so a snapshot that passes them but
-            // does not decode was written by an older replay layout: the run resumes with an
+            // does not decode was written by an older replay layout, and one whose records
+            // fail their checks was written by no learner: either way the run resumes with an
             // empty replay (as when the replay config changed) rather than not at all.
-            replay = match checkpoint::load_replay(checkpoint) {
+            replay = match checkpoint::load_replay_for(checkpoint, config) {
                 Ok(replay) => replay,
-                Err(CheckpointError::ReplayLayout { path, reason }) => {
+                Err(
+                    CheckpointError::ReplayLayout { path, reason } | CheckpointError::ReplayContent { path, reason },
+                ) => {
                     warn!(
-                        "the replay snapshot {} does not decode ({reason}); resuming with an empty replay",
+                        "the replay snapshot {} is not usable ({reason}); resuming with an empty replay",
                         path.display()
                     );
                     None
@@ -133,7 +136,7 @@ impl<'a> Trainer<'a> {
         // checkpoint.
         let now_ms =
             std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).map_or(0, |d| d.as_millis() as u64);
-        progress.learner_session = (progress.learner_session + 1).max(now_ms);
+        progress.learner_session = progress.learner_session.saturating_add(1).max(now_ms);
         let replay = match replay {
             Some(r) if r.config() == config.replay && r.obs_dim() == config.env.policy_input_dim() => r,
             _ => Replay::new(config.replay.clone(), config.env.policy_input_dim())?,
@@ -184,18 +187,28 @@ impl<'a> Trainer<'a> {
             Err(RecvTimeoutError::Timeout) => None,
             Err(RecvTimeoutError::Disconnected) => return false,
         };
+        // At most one queue's worth per turn, so that arrivals cannot starve learning, and a
+        // whole one, so that inserts keep up with any flood the queue admitted.
+        let mut drained = 0;
         let mut received = 0;
         while let Some(batch) = next.take() {
             self.links.shared.queued_transitions.fetch_sub(batch.len() as u64, Ordering::Relaxed);
             received += insert_batch(&mut self.replay, &batch, self.links.shared);
             self.progress.env_steps += batch.len() as u64;
             self.progress.physics_steps += batch.physics_steps;
-            // Bounded, so that a flood of arrivals cannot starve learning.
-            if received < 16 * batch_size.max(256) {
+            drained += 1;
+            if drained < self.config.learner.ingest_queue {
                 next = self.links.ingest.try_recv().ok();
             }
         }
         self.rate.record_insert(received, self.replay.len());
+        let departed = std::mem::take(&mut *lock(&self.links.shared.departed));
+        if !departed.is_empty() {
+            // Everyone not live goes, including actors whose last batches arrived after they
+            // had already been released.
+            let live = self.links.shared.connected();
+            self.replay.release_streams(|actor| live.contains(&actor));
+        }
         true
     }
 
@@ -304,6 +317,7 @@ impl<'a> Trainer<'a> {
         let now = TrainingNow {
             progress: &self.progress,
             replay_len: self.replay.len(),
+            replay_open_streams: self.replay.open_streams(),
             train_seconds: self.train_seconds(),
             last_checkpoint: self.last_checkpoint.as_deref(),
             samples_per_insert: self.rate.realised_samples_per_insert(),

@@ -6,8 +6,8 @@ use std::fs;
 
 use crawler_actor::policy::NetworkSpec;
 use crawler_learner::algo::dqn::{Batch, Dqn, DqnConfig};
-use crawler_learner::checkpoint::{self, CheckpointError, Progress};
-use crawler_learner::replay::{Replay, ReplayConfig, SampledBatch, StreamId, Transition};
+use crawler_learner::checkpoint::{self, CheckpointError, Progress, ReplayExpectation};
+use crawler_learner::replay::{Replay, ReplayConfig, SampledBatch, SnapshotBounds, StreamId, Transition};
 use rand::SeedableRng;
 use tch::{Kind, Tensor};
 
@@ -37,6 +37,16 @@ fn trained(seed: u64) -> Dqn {
 
 fn progress(updates: u64) -> Progress {
     Progress { updates, env_steps: 10 * updates, weights_version: updates / 2, epsilon: 0.25, ..Progress::default() }
+}
+
+/// What ingest lets into a replay of 40-value observations: values within ±1000, rewards
+/// within ±100, 25 actions.
+fn bounds() -> SnapshotBounds {
+    SnapshotBounds { observation_range: vec![[-1e3, 1e3]; 40], max_abs_reward: 100.0, num_actions: 25 }
+}
+
+fn load_replay(loaded: &checkpoint::Checkpoint, config: &ReplayConfig) -> Result<Option<Replay>, CheckpointError> {
+    checkpoint::load_replay(loaded, &ReplayExpectation { config, obs_dim: 40, bounds: &bounds() })
 }
 
 fn bits(t: &Tensor) -> Vec<u32> {
@@ -190,7 +200,7 @@ fn the_replay_snapshot_round_trips() {
     let dir = tempfile::tempdir().unwrap();
     checkpoint::save(dir.path(), &trained(5), "run", &progress(1), &serde_json::Value::Null, Some(&replay), 1).unwrap();
     let loaded = checkpoint::load(dir.path()).unwrap();
-    let restored = checkpoint::load_replay(&loaded).unwrap().unwrap();
+    let restored = load_replay(&loaded, &replay.config()).unwrap().unwrap();
     assert_eq!(restored.len(), replay.len());
     let draw = |r: &Replay| {
         let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(8);
@@ -203,7 +213,7 @@ fn the_replay_snapshot_round_trips() {
     let snapshot = loaded.path.join("replay.bin");
     let bytes = fs::read(&snapshot).unwrap();
     fs::write(&snapshot, &bytes[..bytes.len() / 2]).unwrap();
-    let message = checkpoint::load_replay(&loaded).unwrap_err().to_string();
+    let message = load_replay(&loaded, &replay.config()).unwrap_err().to_string();
     assert!(message.contains("replay.bin"), "{message}");
 }
 
@@ -282,8 +292,123 @@ fn an_intact_snapshot_of_another_replay_layout_is_named_as_such() {
     meta["files"]["replay.bin"] = serde_json::json!({ "bytes": foreign.len(), "crc32": crc32fast::hash(&foreign) });
     fs::write(&meta_path, serde_json::to_vec(&meta).unwrap()).unwrap();
     let loaded = checkpoint::load(&path).unwrap();
-    match checkpoint::load_replay(&loaded) {
+    match load_replay(&loaded, &replay.config()) {
         Err(CheckpointError::ReplayLayout { path, .. }) => assert!(path.ends_with("replay.bin"), "{}", path.display()),
         other => panic!("expected a replay-layout error, got {other:?}"),
+    }
+}
+
+/// Rewrites one field of a checkpoint's `meta.json`.
+fn edit_meta(path: &std::path::Path, edit: impl FnOnce(&mut serde_json::Value)) {
+    let meta_path = path.join("meta.json");
+    let mut meta: serde_json::Value = serde_json::from_slice(&fs::read(&meta_path).unwrap()).unwrap();
+    edit(&mut meta);
+    fs::write(&meta_path, serde_json::to_vec(&meta).unwrap()).unwrap();
+}
+
+#[test]
+fn counters_beyond_what_a_run_reaches_are_refused_by_file_and_field() {
+    for (field, pointer, value) in [
+        ("adam_step", "/adam_step", serde_json::json!(u64::MAX)),
+        ("progress.updates", "/progress/updates", serde_json::json!(1u64 << 60)),
+        ("progress.weights_version", "/progress/weights_version", serde_json::json!(u64::MAX)),
+        ("progress.learner_session", "/progress/learner_session", serde_json::json!(u64::MAX)),
+        ("progress.epsilon", "/progress/epsilon", serde_json::json!(-0.5)),
+        ("progress.train_seconds", "/progress/train_seconds", serde_json::json!(1e300)),
+    ] {
+        let dir = tempfile::tempdir().unwrap();
+        let path =
+            checkpoint::save(dir.path(), &trained(8), "run", &progress(1), &serde_json::json!({}), None, 1).unwrap();
+        edit_meta(&path, |meta| *meta.pointer_mut(pointer).unwrap() = value.clone());
+        let error = checkpoint::load(&path).unwrap_err().to_string();
+        assert!(error.contains("meta.json") && error.contains(field), "{field}: {error}");
+    }
+}
+
+/// Adam's step past 2³¹ once wrapped its bias correction to zero, and every update after a
+/// resume was skipped as non-finite: a step count anywhere in range still trains.
+#[test]
+fn a_resume_at_a_step_count_past_i32_keeps_training_finite() {
+    let dir = tempfile::tempdir().unwrap();
+    let path = checkpoint::save(dir.path(), &trained(9), "run", &progress(1), &serde_json::json!({}), None, 1).unwrap();
+    for step in [(1u64 << 32) - 1, 1 << 32, checkpoint::MAX_COUNTER] {
+        edit_meta(&path, |meta| meta["adam_step"] = serde_json::json!(step));
+        let mut dqn = Dqn::new(network(), config(1));
+        dqn.restore(&checkpoint::load(&path).unwrap()).unwrap();
+        for _ in 0..3 {
+            assert!(dqn.update(&batch_with(0.5)).applied, "adam step {step}");
+        }
+        assert!(dqn.online.all_finite(), "adam step {step}");
+    }
+}
+
+#[test]
+fn files_that_are_devices_or_larger_than_their_network_are_refused_before_reading() {
+    let dir = tempfile::tempdir().unwrap();
+    let path =
+        checkpoint::save(dir.path(), &trained(10), "run", &progress(1), &serde_json::json!({}), None, 1).unwrap();
+    // An entry far larger than the network's values.
+    edit_meta(&path, |meta| meta["files"]["weights.safetensors"]["bytes"] = serde_json::json!(8u64 << 30));
+    let error = checkpoint::load(&path).unwrap_err().to_string();
+    assert!(error.contains("meta.json") && error.contains("files.weights.safetensors.bytes"), "{error}");
+    // A weights file that links to an endless device, its entry left as it was.
+    let dir = tempfile::tempdir().unwrap();
+    let path =
+        checkpoint::save(dir.path(), &trained(10), "run", &progress(1), &serde_json::json!({}), None, 1).unwrap();
+    fs::remove_file(path.join("target.safetensors")).unwrap();
+    std::os::unix::fs::symlink("/dev/zero", path.join("target.safetensors")).unwrap();
+    let started = std::time::Instant::now();
+    let error = checkpoint::load(&path).unwrap_err().to_string();
+    assert!(error.contains("target.safetensors") && error.contains("not a regular file"), "{error}");
+    assert!(started.elapsed() < std::time::Duration::from_secs(5), "read the device before refusing it");
+    // A meta.json that is a device.
+    fs::remove_file(path.join("meta.json")).unwrap();
+    std::os::unix::fs::symlink("/dev/zero", path.join("meta.json")).unwrap();
+    let error = checkpoint::load(&path).unwrap_err().to_string();
+    assert!(error.contains("meta.json") && error.contains("not a regular file"), "{error}");
+}
+
+/// A replay snapshot whose checksum holds but whose records no validated actor could have
+/// sent (here an observation of 3e38, written straight into the ring) is refused by record,
+/// and a snapshot whose entry claims more bytes than this run's replay takes is not read.
+#[test]
+fn a_replay_snapshot_is_checked_record_by_record() {
+    let config = ReplayConfig { capacity: 16, n_step: 1, prioritized: None };
+    let mut replay = Replay::new(config.clone(), 40).unwrap();
+    let (obs, next) = (vec![0.5f32; 40], vec![0.25f32; 40]);
+    let mut huge = next.clone();
+    huge[7] = 3e38;
+    for (i, next) in [&next, &huge].into_iter().enumerate() {
+        let transition = Transition {
+            observation: &obs,
+            action: 1,
+            reward: 0.5,
+            next_observation: next,
+            terminated: true,
+            truncated: false,
+        };
+        replay.insert(StreamId { actor: 0, env: i as u32 }, &transition).unwrap();
+    }
+    let dir = tempfile::tempdir().unwrap();
+    let path =
+        checkpoint::save(dir.path(), &trained(11), "run", &progress(1), &serde_json::json!({}), Some(&replay), 1)
+            .unwrap();
+    let loaded = checkpoint::load(&path).unwrap();
+    match load_replay(&loaded, &config) {
+        Err(CheckpointError::ReplayContent { path, reason }) => {
+            assert!(path.ends_with("replay.bin"), "{}", path.display());
+            assert!(reason.contains("slot 3") && reason.contains("observation value 7"), "{reason}");
+        }
+        other => panic!("expected the snapshot refused, got {other:?}"),
+    }
+    // A replay of another size is not this run's: not read, and no error.
+    let other = ReplayConfig { capacity: 32, ..config.clone() };
+    assert!(load_replay(&loaded, &other).unwrap().is_none());
+    // An entry claiming more than a 16-slot replay takes.
+    edit_meta(&path, |meta| meta["files"]["replay.bin"]["bytes"] = serde_json::json!(1u64 << 40));
+    let loaded = checkpoint::load(&path).unwrap();
+    match load_replay(&loaded, &config) {
+        Err(CheckpointError::ReplayContent { reason, .. }) => assert!(reason.contains("more than"), "{reason}"),
+        other => panic!("expected the oversized snapshot refused, got {other:?}"),
     }
 }

@@ -64,6 +64,9 @@ enum Mode {
         /// How long attacks that hold something (a queryable, a subscriber) hold it.
         #[arg(long, default_value_t = 5.0)]
         seconds: f64,
+        /// How many tokens `squat` declares.
+        #[arg(long, default_value_t = 62)]
+        count: u32,
     },
 }
 
@@ -91,6 +94,14 @@ enum Attack {
     /// Batches and status put under another actor's key (id 0), and one's own key with
     /// another id in the payload.
     Impersonate,
+    /// Liveliness tokens under other spellings of the live actors' ids 0 and 1 (`00`,
+    /// `+1`, …), declared and then dropped.
+    AliasTokens,
+    /// Batches of one incarnation, then (once it has been quiet long enough) one of another,
+    /// then more of the first again.
+    ReplayIncarnation,
+    /// `--count` made-up liveliness tokens held for `--seconds`, to take every free slot.
+    Squat,
 }
 
 fn main() -> anyhow::Result<()> {
@@ -117,8 +128,8 @@ async fn run(args: Args) -> anyhow::Result<()> {
     match args.mode {
         Mode::Listen { keys } => listen(&session, &keys).await,
         Mode::Forge { run, id, seconds } => forge(&session, &run, id, Duration::from_secs_f64(seconds)).await,
-        Mode::Attack { kind, run, id, seconds } => {
-            let report = attack(&session, kind, &run, id, Duration::from_secs_f64(seconds)).await?;
+        Mode::Attack { kind, run, id, seconds, count } => {
+            let report = attack(&session, kind, &run, id, count, Duration::from_secs_f64(seconds)).await?;
             // Let the last messages leave before closing.
             tokio::time::sleep(Duration::from_millis(500)).await;
             session.close().await.map_err(|e| anyhow::anyhow!("closing: {e}"))?;
@@ -174,6 +185,7 @@ async fn attack(
     kind: Attack,
     run: &str,
     id: u32,
+    count: u32,
     hold: Duration,
 ) -> anyhow::Result<serde_json::Value> {
     let mut sent = 0u64;
@@ -273,6 +285,83 @@ async fn attack(
         Attack::HugeMessage => {
             put(session, &keys::transitions(run, id), vec![7u8; 200 << 20]).await?;
             sent = 1;
+        }
+        Attack::AliasTokens => {
+            let mut tokens = Vec::new();
+            for alias in ["00", "01", "+0", "+1", "000", "001", "0000", "0001", "+00", "+01"] {
+                let key = format!("{}/{run}/alive/actor/{alias}", keys::ROOT);
+                tokens.push(session.liveliness().declare_token(key).await.map_err(err("token"))?);
+                sent += 1;
+            }
+            tokio::time::sleep(Duration::from_secs(1)).await;
+            drop(tokens);
+        }
+        Attack::ReplayIncarnation => {
+            let _token = session.liveliness().declare_token(keys::alive_actor(run, id)).await.map_err(err("token"))?;
+            // The learner's credit for this id names the incarnation it has taken: how the
+            // attacker knows each one got in.
+            let (credit_tx, mut credit_rx) = tokio::sync::watch::channel(0u64);
+            let run_id = run.to_string();
+            let _credit = session
+                .declare_subscriber(keys::credit(run, id))
+                .callback(move |sample| {
+                    let bytes = sample.payload().to_bytes();
+                    if let Ok(credit) = proto::validate::insert_credit(&bytes, &run_id, sample.key_expr().as_str()) {
+                        credit_tx.send_replace(credit.incarnation);
+                    }
+                })
+                .await
+                .map_err(err("subscribing to credit"))?;
+            tokio::time::sleep(Duration::from_millis(500)).await;
+            let batch = |incarnation: u64, sequence: u64| {
+                proto::TransitionBatch { incarnation, ..valid_batch(run, id, sequence, 8) }.encode_to_vec()
+            };
+            let mut sequence = 0;
+            // Incarnation 11, then 12 once 11 has been quiet for the handover time: each
+            // introduces itself until the learner's credit names it.
+            for incarnation in [11, 12] {
+                let taken = async {
+                    loop {
+                        sequence += 1;
+                        put(session, &keys::transitions(run, id), batch(incarnation, sequence)).await?;
+                        sent += 1;
+                        let named = tokio::time::timeout(
+                            Duration::from_millis(400),
+                            credit_rx.wait_for(|taken| *taken == incarnation),
+                        );
+                        if matches!(named.await, Ok(Ok(_))) {
+                            return anyhow::Ok(());
+                        }
+                    }
+                };
+                tokio::time::timeout(Duration::from_secs(30), taken)
+                    .await
+                    .with_context(|| format!("the learner never took incarnation {incarnation}"))??;
+                tokio::time::sleep(proto::validate::INCARNATION_HANDOVER + Duration::from_millis(300)).await;
+            }
+            // Incarnation 11 again, sequences it never sent: refused as retired.
+            for _ in 0..10 {
+                sequence += 1;
+                put(session, &keys::transitions(run, id), batch(11, sequence)).await?;
+                sent += 1;
+            }
+            // Held until they have arrived: a token that left first would make them not live.
+            tokio::time::sleep(Duration::from_secs(1)).await;
+        }
+        Attack::Squat => {
+            let mut tokens = Vec::new();
+            for fake in 0..count {
+                let key = keys::alive_actor(run, 7_000 + fake);
+                tokens.push(session.liveliness().declare_token(key).await.map_err(err("token"))?);
+                sent += 1;
+            }
+            let report = serde_json::json!({ "attack": format!("{kind:?}"), "sent": sent, "holding": true });
+            let mut stdout = std::io::stdout().lock();
+            writeln!(stdout, "{report}").context("writing stdout")?;
+            stdout.flush().context("flushing stdout")?;
+            drop(stdout);
+            tokio::time::sleep(hold).await;
+            drop(tokens);
         }
         Attack::Tokens => {
             let mut tokens = Vec::new();

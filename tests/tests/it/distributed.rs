@@ -28,7 +28,7 @@ fn a_learner_trains_on_two_actors_and_checkpoints() {
     let checkpoint = crawler_learner::checkpoint::load(&runs.path().join("itest/checkpoints")).unwrap();
     assert!(checkpoint.meta.progress.updates >= u64_at(&status, "/updates"));
     assert!(checkpoint.online.iter().all(|v| v.is_finite()));
-    let replay = crawler_learner::checkpoint::load_replay(&checkpoint).unwrap().unwrap();
+    let replay = crate::replay_of(&checkpoint).unwrap().unwrap();
     assert!(replay.len() as u64 >= u64_at(&status, "/replay_len"));
 
     // `eval` of that checkpoint: JSON on stdout, the same for the same seeds.
@@ -104,7 +104,7 @@ fn a_resumed_run_continues_its_counters_weights_version_and_replay() {
     assert!(exit.success(), "first session: {exit}");
     let checkpoints = runs.path().join("resumed/checkpoints");
     let before = crawler_learner::checkpoint::load(&checkpoints).unwrap();
-    let replay_before = crawler_learner::checkpoint::load_replay(&before).unwrap().unwrap().len();
+    let replay_before = crate::replay_of(&before).unwrap().unwrap().len();
     assert_eq!(before.meta.progress.updates, 150);
 
     // `--resume` takes the run's own config; the overrides here only move the goal post.
@@ -119,7 +119,7 @@ fn a_resumed_run_continues_its_counters_weights_version_and_replay() {
     assert!(p1.weights_version > p0.weights_version, "weights versions continue: {p0:?} → {p1:?}");
     assert!(p1.train_seconds > p0.train_seconds);
     assert_eq!(after.meta.run_id, "resumed");
-    let replay_after = crawler_learner::checkpoint::load_replay(&after).unwrap().unwrap().len();
+    let replay_after = crate::replay_of(&after).unwrap().unwrap().len();
     assert!(replay_after > replay_before, "the replay was restored and grew: {replay_before} → {replay_after}");
 }
 

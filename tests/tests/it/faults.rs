@@ -76,7 +76,7 @@ fn a_learner_killed_with_sigkill_resumes_the_run_and_running_actors_reconnect() 
     let _ = learner.child.wait();
     let saved = checkpoint::load(&checkpoints).unwrap();
     assert!(saved.meta.progress.updates >= 300, "{:?}", saved.meta.progress);
-    assert!(checkpoint::load_replay(&saved).unwrap().is_none(), "periodic checkpoints hold no replay");
+    assert!(crate::replay_of(&saved).unwrap().is_none(), "periodic checkpoints hold no replay");
     let actor_steps: Vec<u64> = actors.iter().map(|a| last_status_steps(&a.log_text())).collect();
 
     // The actors outlive the learner and keep simulating.
@@ -195,7 +195,7 @@ fn bad_input_is_refused_counted_and_kept_out_of_replay_while_training_goes_on() 
     learner.wait_for(Duration::from_secs(60), "more updates", |s| u64_at(s, "/updates") > updates + 50);
     assert!(learner.terminate(Duration::from_secs(60)).success());
     let saved = checkpoint::load(&runs.path().join("garbage/checkpoints")).unwrap();
-    let replay = checkpoint::load_replay(&saved).unwrap().unwrap();
+    let replay = crate::replay_of(&saved).unwrap().unwrap();
     assert!(!replay.is_empty() && replay.all_finite());
 }
 

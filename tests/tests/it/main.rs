@@ -13,3 +13,13 @@ mod faults;
 mod outputs;
 mod security;
 mod swarm;
+
+/// The replay snapshot of a checkpoint a learner of this workspace wrote, checked against the
+/// run's own config.
+pub(crate) fn replay_of(
+    checkpoint: &crawler_learner::checkpoint::Checkpoint,
+) -> Result<Option<crawler_learner::replay::Replay>, crawler_learner::checkpoint::CheckpointError> {
+    let config = crawler_run::config::TrainConfig::from_json(&checkpoint.meta.config, "the checkpoint's config", &[])
+        .map_err(|e| crawler_learner::checkpoint::corrupt(&checkpoint.path, e))?;
+    crawler_learner::checkpoint::load_replay_for(checkpoint, &config)
+}

@@ -316,10 +316,13 @@ fn attack_suite(learner: &mut Learner, link: &Link, run: &str, log_dir: &Path) {
     eprintln!("rejected after the first attacks: {}", status["rejected"]);
     // ε NaN and ∞ (non_finite), 7 (out_of_range); 30 batches of 3e38 (out_of_range).
     assert!(rejected(&status, "non_finite") >= 10 && rejected(&status, "out_of_range") >= 35, "{status:#}");
-    // 20 messages under the attacker's own key in actor 0's name. (Its 10 batches under
-    // actor 0's own key pass: ids are not identities, every actor certificate shares one
-    // role; they are valid transitions, and the limit is documented in deploy/README.md.)
+    // 20 messages under the attacker's own key in actor 0's name. Its 10 batches under
+    // actor 0's own key, from an incarnation of its own, take nothing over while the
+    // genuine actor 0 sends (incarnation_busy, or over_credit once the one introduction per
+    // 250 ms is used).
     assert!(rejected(&status, "key_mismatch") >= 20, "{status:#}");
+    let taken_over = rejected(&status, "incarnation_busy") + rejected(&status, "over_credit");
+    assert!(taken_over >= 10, "{status:#}");
     // The flood: ids without a token, env ids beyond the run's crawlers per actor.
     assert!(rejected(&status, "not_live") >= 1000 && rejected(&status, "env_id") >= 1000, "{status:#}");
     assert!(status["actors"].as_object().unwrap().keys().all(|id| id.parse::<u32>().unwrap() < 1000), "{status:#}");
@@ -368,6 +371,45 @@ fn attack_suite(learner: &mut Learner, link: &Link, run: &str, log_dir: &Path) {
     drop(auto);
     let _ = tokens.kill();
     let _ = tokens.wait();
+
+    // Tokens under other spellings of the genuine actors' ids (`00`, `+1`), declared and
+    // dropped: refused by name, and both genuine actors stay on the books.
+    let before = learner.status().unwrap();
+    let since = u64_at(&before, "/weights_version");
+    attack(link, run, "alias-tokens", 0.0);
+    let after_aliases = learner
+        .wait_for(Duration::from_secs(30), "the aliased tokens counted", |s| rejected(s, "non_canonical_id") >= 10);
+    std::thread::sleep(Duration::from_secs(2));
+    let since_aliases = learner.wait_for(Duration::from_secs(30), "the genuine actors after the aliases", |s| {
+        actors_follow_the_learner(s, since)
+            && (0..2).all(|id| {
+                let pointer = format!("/actors/{id}/transitions");
+                u64_at(s, &pointer) > u64_at(&after_aliases, &pointer)
+            })
+    });
+    assert_eq!(rejected(&since_aliases, "not_live"), rejected(&after_aliases, "not_live"), "{since_aliases:#}");
+
+    // An incarnation played back after another replaced it: refused, whatever its sequence.
+    attack(link, run, "replay-incarnation", 0.0);
+    learner.wait_for(Duration::from_secs(30), "the played-back batches refused", |s| {
+        rejected(s, "retired_incarnation") >= 10
+    });
+
+    // Squatters take every free slot while a new actor joins; it waits, and takes a slot as
+    // soon as they leave, without a restart.
+    let (mut squat, lines) = attack_in_background(link, run, "squat", 12.0);
+    let first = lines.recv_timeout(Duration::from_secs(60)).unwrap();
+    eprintln!("attack squat: {first}");
+    let mut late = start_actor_at(&link.endpoint, "6", run, &link.actor_tls, log_dir);
+    let waiting =
+        learner.wait_for(Duration::from_secs(30), "the late actor turned away", |s| u64_at(s, "/ignored_tokens") >= 1);
+    assert!(u64_at(&waiting, "/actors/6/transitions") == 0, "{waiting:#}");
+    assert!(squat.wait().unwrap().success());
+    learner.wait_for(Duration::from_secs(60), "the late actor to take a freed slot and train", |s| {
+        u64_at(s, "/actors/6/transitions") > 0
+    });
+    assert!(late.is_running(), "{}", late.log_text());
+    drop(late);
 
     // Training went on, the genuine actors follow the learner, state stayed bounded.
     let now = learner.status().unwrap();
@@ -428,4 +470,55 @@ fn attacks_by_a_certified_actor_leave_training_intact() {
         .collect();
     let link = Link { endpoint: format!("tls/localhost:{port}"), actor_tls: tls_flags(&tls, &tls, "actor-2") };
     attack_suite(&mut learner, &link, run, dir.path());
+}
+
+/// A checkpoint's `meta.json` is a file anyone with write access to the runs directory can
+/// edit: one that asks for a plain listener on every interface does not get it on a resume
+/// unless the command line asks too.
+#[test]
+fn a_checkpoint_cannot_widen_who_may_connect_on_a_resume() {
+    let dir = tempfile::tempdir().unwrap();
+    let runs = dir.path().join("runs");
+    let port = free_port();
+    let widened = ["learner.allow_plain_remote=true".to_string(), format!("learner.listen=[\"tcp/0.0.0.0:{port}\"]")];
+    let config = crawler_run::config::TrainConfig::load(&crawler_tests::repo_root().join(SMOKE), &widened).unwrap();
+    let dqn = crawler_learner::algo::dqn::Dqn::new(config.network_spec(), config.dqn.clone());
+    let progress = crawler_learner::checkpoint::Progress { updates: 1, ..Default::default() };
+    let config_json = serde_json::to_value(&config).unwrap();
+    let checkpoints = runs.join("widened").join("checkpoints");
+    crawler_learner::checkpoint::save(&checkpoints, &dqn, "widened", &progress, &config_json, None, 1).unwrap();
+
+    let resume = |extra: &[&str]| {
+        let mut command = Command::new(binary("learner"));
+        command
+            .current_dir(crawler_tests::repo_root())
+            .args(["--resume", "widened", "--actors", "0"])
+            .args(["--set", &format!("learner.runs_dir=\"{}\"", runs.display())])
+            .args(extra)
+            .stdout(Stdio::null())
+            .stderr(Stdio::piped());
+        command
+    };
+    let refused = resume(&[]).output().unwrap();
+    let message = String::from_utf8_lossy(&refused.stderr);
+    assert!(!refused.status.success(), "the resume took the file's listener: {message}");
+    assert!(
+        message.contains("meta.json")
+            && message.contains("learner.allow_plain_remote")
+            && message.contains("--allow-plain-remote"),
+        "{message}"
+    );
+    // Asked for on the command line, the same resume starts.
+    let mut learner = resume(&["--allow-plain-remote"]).stderr(Stdio::inherit()).spawn().unwrap();
+    let status_path = runs.join("widened").join("status.json");
+    let started = crawler_tests::wait_for_status(
+        &status_path,
+        Duration::from_secs(60),
+        "the resume with --allow-plain-remote to start",
+        |_| true,
+        || None,
+    );
+    let _ = learner.kill();
+    let _ = learner.wait();
+    assert_eq!(u64_at(&started, "/updates"), 1, "{started:#}");
 }
