@@ -18,6 +18,9 @@ out="${1:?usage: make-tls.sh OUT_DIR LEARNER_HOST [ACTORS]}"
 host="${2:?usage: make-tls.sh OUT_DIR LEARNER_HOST [ACTORS]}"
 actors="${3:-4}"
 days=825
+# Keys are private from the moment they exist (chmod after writing would leave a window);
+# certificates are made readable below.
+umask 077
 mkdir -p "$out"
 cd "$out"
 
@@ -56,4 +59,5 @@ for ((i = 0; i < actors; i++)); do
   issue "actor-$i" "crawler-actor" "clientAuth" "DNS:crawler-actor-$i"
 done
 issue observer "crawler-observer" "clientAuth" "DNS:crawler-observer"
+chmod 644 ./*.pem
 echo "TLS material in $(pwd): ca.pem, learner.{pem,key}, actor-0..$((actors - 1)).{pem,key}, observer.{pem,key}" >&2

@@ -355,12 +355,7 @@ async fn attack(
                 tokens.push(session.liveliness().declare_token(key).await.map_err(err("token"))?);
                 sent += 1;
             }
-            let report = serde_json::json!({ "attack": format!("{kind:?}"), "sent": sent, "holding": true });
-            let mut stdout = std::io::stdout().lock();
-            writeln!(stdout, "{report}").context("writing stdout")?;
-            stdout.flush().context("flushing stdout")?;
-            drop(stdout);
-            tokio::time::sleep(hold).await;
+            hold_and_report(kind, sent, hold).await?;
             drop(tokens);
         }
         Attack::Tokens => {
@@ -376,12 +371,7 @@ async fn attack(
                 sent += 1;
             }
             // Report now: the tokens stay while the test starts a genuine `--id auto` actor.
-            let report = serde_json::json!({ "attack": format!("{kind:?}"), "sent": sent, "holding": true });
-            let mut stdout = std::io::stdout().lock();
-            writeln!(stdout, "{report}").context("writing stdout")?;
-            stdout.flush().context("flushing stdout")?;
-            drop(stdout);
-            tokio::time::sleep(hold).await;
+            hold_and_report(kind, sent, hold).await?;
             drop(tokens);
         }
         Attack::Impersonate => {
@@ -399,6 +389,18 @@ async fn attack(
         }
     }
     Ok(serde_json::json!({ "attack": format!("{kind:?}"), "sent": sent }))
+}
+
+/// Reports what an attack that holds something has sent, at once (the test acts while it
+/// holds), then holds it for `hold`.
+async fn hold_and_report(kind: Attack, sent: u64, hold: Duration) -> anyhow::Result<()> {
+    let report = serde_json::json!({ "attack": format!("{kind:?}"), "sent": sent, "holding": true });
+    let mut stdout = std::io::stdout().lock();
+    writeln!(stdout, "{report}").context("writing stdout")?;
+    stdout.flush().context("flushing stdout")?;
+    drop(stdout);
+    tokio::time::sleep(hold).await;
+    Ok(())
 }
 
 async fn listen(session: &zenoh::Session, keys: &[String]) -> anyhow::Result<()> {
