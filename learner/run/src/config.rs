@@ -415,16 +415,16 @@ impl TrainConfig {
                 return Err(invalid("dqn.lr_decay.updates", "0".into(), "at least 1"));
             }
         }
-        if !(d.reward_scale.is_finite() && d.reward_scale > 0.0) {
-            return Err(invalid("dqn.reward_scale", d.reward_scale.to_string(), "a positive number"));
+        if !(1e-6..=1e6).contains(&d.reward_scale) {
+            return Err(invalid("dqn.reward_scale", d.reward_scale.to_string(), "a number in [1e-6, 1e6]"));
         }
         if !(1..=8192).contains(&d.batch_size) {
             return Err(invalid("dqn.batch_size", d.batch_size.to_string(), "an integer in 1..=8192"));
         }
         if let Some(norm) = d.max_grad_norm
-            && !(norm.is_finite() && norm > 0.0)
+            && !(1e-6..=1e6).contains(&norm)
         {
-            return Err(invalid("dqn.max_grad_norm", norm.to_string(), "a positive number"));
+            return Err(invalid("dqn.max_grad_norm", norm.to_string(), "a number in [1e-6, 1e6]"));
         }
         match d.target_update {
             TargetUpdate::Hard { every: 0 } => {
@@ -495,17 +495,26 @@ impl TrainConfig {
                 "at least one zenoh endpoint, e.g. \"tcp/127.0.0.1:7447\"",
             ));
         }
-        if !(l.max_seconds.is_finite() && l.max_seconds >= 0.0) {
-            return Err(invalid("learner.max_seconds", l.max_seconds.to_string(), "a finite number ≥ 0 (0: no limit)"));
+        // A century.
+        if !(0.0..=3.2e9).contains(&l.max_seconds) {
+            return Err(invalid(
+                "learner.max_seconds",
+                l.max_seconds.to_string(),
+                "seconds in [0, 3.2e9] (0: no limit)",
+            ));
         }
         if !(1..=4096).contains(&l.max_actors) {
             return Err(invalid("learner.max_actors", l.max_actors.to_string(), "an integer in 1..=4096"));
         }
-        if l.weights_every == 0 {
-            return Err(invalid("learner.weights_every", "0".into(), "at least 1"));
+        if !(1..=1_000_000).contains(&l.weights_every) {
+            return Err(invalid("learner.weights_every", l.weights_every.to_string(), "an integer in 1..=1000000"));
         }
-        if l.keep_checkpoints == 0 {
-            return Err(invalid("learner.keep_checkpoints", "0".into(), "at least 1"));
+        if !(1..=1_000_000).contains(&l.keep_checkpoints) {
+            return Err(invalid(
+                "learner.keep_checkpoints",
+                l.keep_checkpoints.to_string(),
+                "an integer in 1..=1000000",
+            ));
         }
         if l.average_checkpoints == 1 || l.average_checkpoints > l.keep_checkpoints {
             return Err(invalid(
@@ -538,8 +547,8 @@ impl TrainConfig {
                 "0 when learner.checkpoint_every is 0 (only periodic checkpoints are evaluated)",
             ));
         }
-        if !(l.status_every_s.is_finite() && l.status_every_s > 0.0) {
-            return Err(invalid("learner.status_every_s", l.status_every_s.to_string(), "a positive number"));
+        if !(0.05..=3600.0).contains(&l.status_every_s) {
+            return Err(invalid("learner.status_every_s", l.status_every_s.to_string(), "seconds in [0.05, 3600]"));
         }
         if !(1..=65_536).contains(&l.ingest_queue) {
             return Err(invalid("learner.ingest_queue", l.ingest_queue.to_string(), "an integer in 1..=65536"));
@@ -738,6 +747,21 @@ mod tests {
             ("env.base_impact_threshold=-inf", "env.base_impact_threshold"),
             ("env.position_reward_weight=0.0", "env.position_reward_weight"),
             ("env.position_reward_weight=nan", "env.position_reward_weight"),
+        ] {
+            let err = TrainConfig::from_toml("", "test", &[assignment.into()]).unwrap_err().to_string();
+            assert!(err.contains(key), "{assignment}: {err}");
+        }
+        // Finite but absurd: durations, rates and scales have ranges, refused by key.
+        for (assignment, key) in [
+            ("learner.status_every_s=1e-20", "learner.status_every_s"),
+            ("learner.status_every_s=1e9", "learner.status_every_s"),
+            ("learner.max_seconds=1e300", "learner.max_seconds"),
+            ("dqn.reward_scale=1e-30", "dqn.reward_scale"),
+            ("dqn.reward_scale=1e30", "dqn.reward_scale"),
+            ("dqn.max_grad_norm=1e-30", "dqn.max_grad_norm"),
+            ("learner.weights_every=1000000000", "learner.weights_every"),
+            ("learner.keep_checkpoints=1000000000", "learner.keep_checkpoints"),
+            ("actor.status_interval_s=1e-20", "actor.status_interval_s"),
         ] {
             let err = TrainConfig::from_toml("", "test", &[assignment.into()]).unwrap_err().to_string();
             assert!(err.contains(key), "{assignment}: {err}");
