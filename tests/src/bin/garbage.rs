@@ -61,6 +61,9 @@ async fn main() -> anyhow::Result<()> {
         .await
         .map_err(|e| anyhow::anyhow!("put valid: {e}"))?;
     sent.insert("valid", 1);
+    // Until the learner's next credit round has granted this incarnation (they come every
+    // 10 ms): a replay is then refused as a replay, not as a batch past its credit.
+    tokio::time::sleep(std::time::Duration::from_millis(300)).await;
     let mut sequence = 0u64;
     for _ in 0..args.rounds {
         let mut next = |f: &mut dyn FnMut(&mut proto::TransitionBatch)| {
