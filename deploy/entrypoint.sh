@@ -3,7 +3,10 @@
 # `learner`), or the tool named first (`eval`, `average`, `pick`, `plot`, `render`, in both images), as an
 # unprivileged user.
 #
-# Why it starts as root and then drops to that user, as the official database images do:
+# The images run as `crawler` (uid 10001), and then the program starts directly. A compose
+# service that bind-mounts host files starts it as root instead (`user: root`, with only the
+# capabilities this needs), and it drops to the runtime user, as the official database
+# images do. Why:
 # - /runs: compose bind-mounts ./runs, and Docker creates a missing bind-mount directory
 #   owned by root, which an unprivileged image user cannot write (the learner then
 #   crash-looped). The directory is handed to the runtime user first.
@@ -57,8 +60,8 @@ private_copy() {
     fi
     copy="$private/$1.pem"
     cp "$2" "$copy"
-    chown "$uid:$gid" "$copy"
     chmod 0400 "$copy"
+    chown "$uid:$gid" "$copy"
     printf '%s' "$copy"
 }
 
@@ -88,4 +91,7 @@ for name in ca cert key; do
     fi
 done
 
-exec setpriv --reuid="$uid" --regid="$gid" --clear-groups --inh-caps=-all --bounding-set=-all "$binary" "$@"
+# --no-new-privs: nothing the program runs can gain privileges again (setuid files, file
+# capabilities).
+exec setpriv --reuid="$uid" --regid="$gid" --clear-groups --inh-caps=-all --bounding-set=-all --no-new-privs \
+    "$binary" "$@"

@@ -3,9 +3,11 @@
 //! Three layers, each its own module tree:
 //! - the algorithm, [`algo`]: the Q-network on one flat buffer, fused Adam, the Double DQN
 //!   update; [`replay`]: the ring that stores each observation once, n-step returns, its
-//!   samplers (uniform, prioritised); [`rate`]: the samples-per-insert limiter;
+//!   samplers (uniform, prioritised); [`rate`]: the samples-per-insert limiter; [`table`]:
+//!   replay and the limiter under one lock, shared by the inserting and training threads;
 //! - the process, [`service`]: the embedded zenoh router and its access control, the
-//!   receive path (`service::edge`), the training thread (`service::trainer`), status and
+//!   receive path (`service::edge`), the inserting thread (`service::inserter`), the training
+//!   thread (`service::trainer`), status and
 //!   metrics (`service::telemetry`);
 //! - persistence, [`checkpoint`]: the DQN and replay glue over `crawler_run::checkpoint`.
 //!
@@ -17,6 +19,7 @@ pub mod checkpoint;
 pub mod rate;
 pub mod replay;
 pub mod service;
+pub mod table;
 
 /// Sets libtorch's intra-op threads. Use 1 unless the learner owns the machine: with two
 /// OpenMP threads, updates collapse from ~500/s to under 70/s as soon as anything else needs

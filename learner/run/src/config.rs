@@ -263,8 +263,8 @@ pub struct LearnerSection {
     pub max_updates: u64,
     pub max_seconds: f64,
     pub max_env_steps: u64,
-    /// Transition batches queued between the network and training before new ones are dropped;
-    /// also the most the training thread inserts between two updates.
+    /// Transition batches queued between the network and the inserting thread before new
+    /// ones are dropped.
     pub ingest_queue: usize,
     /// Directory that holds one directory per run.
     pub runs_dir: String,

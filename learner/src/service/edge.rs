@@ -2,8 +2,8 @@
 //!
 //! Callbacks validate what arrives (`proto::validate`, the sender's id against the key and a
 //! live token), count what they reject, and touch only [`Shared`]: small tables behind
-//! short-lived mutexes. Transition batches go to the training thread through a bounded queue
-//! with `try_send`, so nothing here ever waits for training.
+//! short-lived mutexes. Transition batches go to the inserting thread through a bounded queue
+//! with `try_send`, so nothing here ever waits for replay or training.
 
 use std::collections::{BTreeMap, BTreeSet, VecDeque};
 use std::sync::atomic::{AtomicU64, Ordering};
@@ -21,6 +21,7 @@ use zenoh::Wait;
 use zenoh::sample::SampleKind;
 
 use super::credit::CreditLedger;
+use super::fair_share::{Budgets, FairShares};
 use super::{ServiceError, zenoh_error};
 
 /// Per-actor view, from its transitions and status reports.
@@ -44,7 +45,7 @@ pub struct ActorView {
 }
 
 /// Which kind of node a liveliness token announces.
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, PartialOrd, Ord, Hash)]
 pub(super) enum NodeKind {
     Actor,
     Evaluator,
@@ -119,7 +120,7 @@ impl LiveNodes {
     }
 }
 
-/// State shared between zenoh callbacks, the training thread and status reports.
+/// State shared between zenoh callbacks, the inserting and training threads and status reports.
 #[derive(Debug, Default)]
 pub(super) struct Shared {
     pub(super) actors: Mutex<BTreeMap<u32, ActorView>>,
@@ -129,7 +130,7 @@ pub(super) struct Shared {
     pub(super) rejected: Mutex<BTreeMap<&'static str, u64>>,
     /// Liveliness tokens beyond `learner.max_actors`, ignored.
     pub(super) ignored_tokens: AtomicU64,
-    /// Actors that left since the training thread last looked: it releases their replay
+    /// Actors that left since the inserting thread last looked: it releases their replay
     /// streams.
     pub(super) departed: Mutex<Vec<u32>>,
     /// Actor ids that have metric tags of their own.
@@ -152,11 +153,24 @@ pub(super) struct Shared {
     pub(super) insert_limit: AtomicU64,
     /// Insert credit granted to each live actor.
     pub(super) credits: Mutex<CreditLedger>,
+    /// Each live sender's share of the ingest queue, the pending episodes, status reports
+    /// and log lines.
+    pub(super) shares: Mutex<FairShares>,
 }
 
 impl Shared {
-    pub(super) fn new(max_actors: usize) -> Self {
-        Self { live: Mutex::new(LiveNodes { max: max_actors, ..LiveNodes::default() }), ..Self::default() }
+    pub(super) fn new(max_actors: usize, budgets: Budgets) -> Self {
+        Self {
+            live: Mutex::new(LiveNodes { max: max_actors, ..LiveNodes::default() }),
+            shares: Mutex::new(FairShares::new(budgets)),
+            ..Self::default()
+        }
+    }
+
+    /// Live actors and evaluators, in all.
+    fn live_senders(&self) -> usize {
+        let live = lock(&self.live);
+        live.actors.len() + live.evaluators.len()
     }
 
     pub(super) fn connected(&self) -> BTreeSet<u32> {
@@ -239,7 +253,13 @@ pub(super) async fn serve(
     let limits = transition_limits(config, run_id);
     let transitions = session
         .declare_subscriber(keys::all_transitions(run_id))
-        .callback(ingest_callback(limits, config.rate.limit_inserts, ingest, Arc::clone(shared)))
+        .callback(ingest_callback(
+            limits,
+            config.rate.limit_inserts,
+            config.learner.ingest_queue,
+            ingest,
+            Arc::clone(shared),
+        ))
         .await
         .map_err(zenoh_error("subscribing to transitions"))?;
     let stats = session
@@ -297,7 +317,10 @@ fn assign_actor_id(shared: &Shared) -> u32 {
     }
     let id = (0..).find(|id| !connected.contains(id) && !assigned.contains_key(id)).unwrap_or(u32::MAX);
     assigned.insert(id, Instant::now());
-    info!(actor = id, "assigned an actor id");
+    drop(assigned);
+    if lock(&shared.shares).unattributed_log_line_passes("assigned an actor id", Instant::now()) {
+        info!(actor = id, "assigned an actor id");
+    }
     id
 }
 
@@ -397,7 +420,8 @@ fn liveliness_callback(shared: Arc<Shared>, kind: NodeKind) -> impl Fn(zenoh::sa
             SampleKind::Delete => {
                 let (was_live, promoted) = live.leave(kind, id);
                 drop(live);
-                if was_live {
+                lock(&shared.shares).forget((kind, id));
+                if was_live && lock(&shared.shares).unattributed_log_line_passes("node left", Instant::now()) {
                     info!(id, ?kind, "node left");
                     if kind == NodeKind::Actor {
                         lock(&shared.sequences).forget(id);
@@ -414,7 +438,9 @@ fn liveliness_callback(shared: Arc<Shared>, kind: NodeKind) -> impl Fn(zenoh::sa
 
 /// Logs a node that took a slot, and makes room among the views of actors that left.
 fn connected(shared: &Shared, kind: NodeKind, id: u32) {
-    info!(id, ?kind, "node connected");
+    if lock(&shared.shares).unattributed_log_line_passes("node connected", Instant::now()) {
+        info!(id, ?kind, "node connected");
+    }
     // Views of actors that left stay for status.json until room is needed.
     let (live_actors, max) = {
         let live = lock(&shared.live);
@@ -427,7 +453,7 @@ fn connected(shared: &Shared, kind: NodeKind, id: u32) {
 }
 
 fn record_status(shared: &Shared, report: proto::ActorStatus) {
-    if report.evaluator {
+    if !lock(&shared.shares).status_passes(report.node(), Instant::now()) || report.evaluator {
         return;
     }
     let mut actors = lock(&shared.actors);
@@ -440,6 +466,11 @@ fn record_status(shared: &Shared, report: proto::ActorStatus) {
 }
 
 fn record_episode(shared: &Shared, stats: proto::EpisodeStats) {
+    let sender = stats.node();
+    let senders = shared.live_senders();
+    if !lock(&shared.shares).enter_pending_episodes(sender, MAX_PENDING_EPISODES, senders) {
+        return;
+    }
     {
         let mut pending = lock(&shared.pending_episodes);
         if pending.len() < MAX_PENDING_EPISODES {
@@ -447,7 +478,14 @@ fn record_episode(shared: &Shared, stats: proto::EpisodeStats) {
         }
     }
     if stats.evaluation {
-        info!(speed = stats.speed, distance = stats.distance, weights = stats.weights_version, "evaluation episode");
+        if lock(&shared.shares).log_line_passes(sender, "evaluation episode", Instant::now()) {
+            info!(
+                speed = stats.speed,
+                distance = stats.distance,
+                weights = stats.weights_version,
+                "evaluation episode"
+            );
+        }
         *lock(&shared.evaluation) = Some(stats);
         return;
     }
@@ -478,10 +516,11 @@ pub fn transition_limits(config: &TrainConfig, run_id: &str) -> TransitionLimits
 }
 
 /// Validates a transition batch, checks it against the actor's insert credit (when
-/// `limit_inserts`) and its sequence, and queues it for the training thread.
+/// `limit_inserts`) and its sequence, and queues it for the inserting thread.
 fn ingest_callback(
     limits: TransitionLimits,
     limit_inserts: bool,
+    capacity: usize,
     queue: SyncSender<proto::TransitionBatch>,
     shared: Arc<Shared>,
 ) -> impl Fn(zenoh::sample::Sample) + Send + Sync + 'static {
@@ -513,7 +552,13 @@ fn ingest_callback(
             }
             Ok(_) => {}
         }
-        // Counted before the send, so that the training thread never takes out more than
+        // A sender that holds its share of the queue cannot take the others' room.
+        let actor = batch.actor_id;
+        let actors = lock(&shared.live).actors.len();
+        if !lock(&shared.shares).enter_queue(actor, capacity, actors) {
+            return;
+        }
+        // Counted before the send, so that the inserting thread never takes out more than
         // went in.
         let transitions = batch.len() as u64;
         shared.queued_transitions.fetch_add(transitions, Ordering::Relaxed);
@@ -522,6 +567,7 @@ fn ingest_callback(
                 shared.admitted_transitions.fetch_add(transitions, Ordering::Relaxed);
             }
             Err(TrySendError::Full(_)) => {
+                lock(&shared.shares).leave_queue(actor);
                 shared.queued_transitions.fetch_sub(transitions, Ordering::Relaxed);
                 let dropped = shared.dropped_batches.fetch_add(1, Ordering::Relaxed) + 1;
                 if dropped <= 3 || dropped.is_multiple_of(100) {
@@ -529,6 +575,7 @@ fn ingest_callback(
                 }
             }
             Err(TrySendError::Disconnected(_)) => {
+                lock(&shared.shares).leave_queue(actor);
                 shared.queued_transitions.fetch_sub(transitions, Ordering::Relaxed);
             }
         }
@@ -578,7 +625,7 @@ mod tests {
 
     #[test]
     fn assignments_stay_small_under_a_flood_of_queries() {
-        let shared = Shared::new(64);
+        let shared = Shared::new(64, Budgets::default());
         lock(&shared.live).actors.extend([0, 1]);
         let ids: Vec<u32> = (0..3000).map(|_| assign_actor_id(&shared)).collect();
         assert!(ids.iter().all(|&id| (2..2 + MAX_PENDING_ASSIGNMENTS as u32 + 1).contains(&id)), "{ids:?}");

@@ -2,16 +2,18 @@
 //!
 //! - [`edge`]: every zenoh callback (validation, liveliness, run info, the weights
 //!   queryable), touching only small shared tables;
-//! - [`trainer`]: the training thread, which owns the DQN, replay and the rate limiter;
+//! - [`inserter`]: the inserting thread, which moves validated batches into the replay table;
+//! - [`trainer`]: the training thread, which owns the DQN and samples from the table;
 //! - [`credit`]: insert credit, the rate limiter's hold on the actors (`rate.limit_inserts`);
 //! - [`telemetry`]: `status.json`, the status line and the metrics files;
 //! - [`access_control`]: the router's zenoh access-control policy, always on.
 //!
 //! Data path: zenoh delivers transition batches to a callback that validates them and hands
-//! them to the training thread through a bounded queue; when the queue is full the batch is
+//! them to the inserting thread through a bounded queue; when the queue is full the batch is
 //! dropped and counted, so zenoh's receive path never waits on training (a reliably published
-//! message that waits more than 5 s makes zenoh close the sender's link). The training thread
-//! inserts, samples and updates; every `weights_every` updates it hands fresh weights to a
+//! message that waits more than 5 s makes zenoh close the sender's link). The inserting thread
+//! writes into the replay table (`crate::table`: replay and rate limiter under one lock) while
+//! the training thread samples from it and updates; every `weights_every` updates it hands fresh weights to a
 //! publisher that never blocks (congestion control Drop: a frozen actor cannot stall the
 //! learner) and to a queryable that serves the latest weights to starting actors.
 
@@ -33,10 +35,13 @@ pub mod access_control;
 mod best_keeper;
 mod credit;
 mod edge;
+mod fair_share;
+mod inserter;
 mod telemetry;
 mod trainer;
 
 pub use edge::{ActorView, transition_limits};
+pub use fair_share::OverShare;
 pub use telemetry::Status;
 
 #[derive(Debug, thiserror::Error)]
@@ -59,6 +64,10 @@ pub enum ServiceError {
     TrainingThread(#[source] std::io::Error),
     #[error("the training thread panicked; the log above says where")]
     TrainingThreadPanicked,
+    #[error("cannot start the inserting thread: {0}")]
+    InsertingThread(#[source] std::io::Error),
+    #[error("the inserting thread panicked; the log above says where")]
+    InsertingThreadPanicked,
     #[error("cannot start the best-checkpoint thread: {0}")]
     BestThread(#[source] std::io::Error),
 }
@@ -103,7 +112,8 @@ pub async fn run(options: ServiceOptions, stop: Arc<AtomicBool>) -> Result<Outco
     let session = open_router(&config, &run_id, identity, zenoh_overrides).await?;
     info!(run = %run_id, listen = ?config.learner.listen, "learner router up");
 
-    let shared = Arc::new(edge::Shared::new(config.learner.max_actors));
+    let budgets = fair_share::Budgets::for_status_interval(config.actor.status_interval_s);
+    let shared = Arc::new(edge::Shared::new(config.learner.max_actors, budgets));
     let (ingest_tx, ingest_rx) = sync_channel::<proto::TransitionBatch>(config.learner.ingest_queue);
     // Held to the end: dropping it undeclares the run's queryables and subscriptions.
     let _edge = edge::serve(&session, &config, &run_id, &shared, ingest_tx).await?;
@@ -127,9 +137,8 @@ pub async fn run(options: ServiceOptions, stop: Arc<AtomicBool>) -> Result<Outco
         std::thread::Builder::new()
             .name("training".into())
             .spawn(move || {
-                let links =
-                    trainer::Links { ingest: &ingest_rx, weights_out: &weights_tx, shared: &shared, stop: &stop };
-                trainer::train(&config, &run_id, &run_dir, trainer::Start { resume, init_from }, links)
+                let links = trainer::Links { weights_out: &weights_tx, shared: &shared, stop: &stop };
+                trainer::train(&config, &run_id, &run_dir, trainer::Start { resume, init_from }, ingest_rx, links)
             })
             .map_err(ServiceError::TrainingThread)?
     };

@@ -11,6 +11,7 @@ use serde::Serialize;
 use tracing::{info, warn};
 
 use super::edge::{ActorView, Shared, lock};
+use super::fair_share::OverShare;
 
 /// How often episodes and the training scalars reach the metrics files.
 const METRICS_EVERY: Duration = Duration::from_secs(1);
@@ -36,6 +37,9 @@ pub struct Status {
     /// Transitions per second received from each actor since the last status.
     pub ingest_per_second: BTreeMap<u32, f64>,
     pub rejected: BTreeMap<&'static str, u64>,
+    /// What each live sender had dropped for going over its fair share (senders that
+    /// dropped nothing are left out); `rejected.over_share` counts them all.
+    pub over_share: BTreeMap<String, OverShare>,
     pub dropped_batches: u64,
     /// Updates skipped because their loss or gradient was not finite.
     pub skipped_updates: u64,
@@ -134,6 +138,14 @@ impl Telemetry {
             })
             .collect();
         let progress = now.progress;
+        let (over_share, over_total) = {
+            let shares = lock(&shared.shares);
+            (shares.over_share(), shares.over_total())
+        };
+        let mut rejected = lock(&shared.rejected).clone();
+        if over_total > 0 {
+            rejected.insert("over_share", over_total);
+        }
         Status {
             run_id: run_id.to_string(),
             elapsed_s: now.train_seconds,
@@ -150,7 +162,8 @@ impl Telemetry {
             connected_actors: shared.connected().into_iter().collect(),
             actors,
             ingest_per_second,
-            rejected: lock(&shared.rejected).clone(),
+            rejected,
+            over_share,
             dropped_batches: shared.dropped_batches.load(Ordering::Relaxed),
             skipped_updates: shared.skipped_updates.load(Ordering::Relaxed),
             ignored_tokens: shared.ignored_tokens.load(Ordering::Relaxed),
@@ -207,6 +220,7 @@ impl LossAverage {
 /// its ε) and `eval/*` for evaluators.
 fn write_episode_metrics(metrics: &mut MetricsWriter, shared: &Shared, train_seconds: f64, env_steps: u64) {
     let episodes = std::mem::take(&mut *lock(&shared.pending_episodes));
+    lock(&shared.shares).pending_episodes_written();
     for e in episodes {
         let group = if e.evaluation { "eval" } else { "episode" };
         let fields = [

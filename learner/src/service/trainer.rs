@@ -1,9 +1,10 @@
-//! The training thread: it owns the DQN, replay and the rate limiter (no lock guards them),
-//! drains the ingest queue into replay, learns, publishes weights and writes checkpoints.
+//! The training thread: it owns the DQN, samples from the replay table that the inserting
+//! thread (`inserter.rs`) fills, learns, publishes weights and writes checkpoints.
 
 use std::path::{Path, PathBuf};
+use std::sync::Arc;
 use std::sync::atomic::{AtomicBool, Ordering};
-use std::sync::mpsc::{Receiver, RecvTimeoutError};
+use std::sync::mpsc::Receiver;
 use std::time::{Duration, Instant};
 
 use crawler_proto::{self as proto, PROTOCOL_VERSION};
@@ -21,7 +22,12 @@ use super::{Outcome, ServiceError};
 use crate::algo::dqn::{Batch, Dqn, UpdateStats};
 use crate::checkpoint::{self, Checkpoint, CheckpointError, Progress};
 use crate::rate::RateLimiter;
-use crate::replay::{Replay, SampledBatch, StreamId, Transition};
+use crate::replay::{Replay, SampledBatch};
+use crate::table::{Table, TableState};
+
+/// The longest the training thread waits for inserts before it looks at its stop flag,
+/// limits and reports again.
+const SAMPLE_WAIT: Duration = Duration::from_millis(5);
 
 /// Where training starts: fresh, resumed, or from another run's networks.
 #[derive(Debug, Default)]
@@ -33,36 +39,54 @@ pub(super) struct Start {
 /// What the training thread shares with the rest of the process.
 #[derive(Debug, Clone, Copy)]
 pub(super) struct Links<'a> {
-    /// Validated transition batches from the edge.
-    pub ingest: &'a Receiver<proto::TransitionBatch>,
     /// Encoded `Weights` messages for the publisher.
     pub weights_out: &'a tokio::sync::mpsc::Sender<Vec<u8>>,
     pub shared: &'a Shared,
     pub stop: &'a AtomicBool,
 }
 
-/// Trains until `stop` is set or a configured limit is reached, then writes the final
-/// checkpoint (with the replay when `learner.snapshot_replay`).
+/// Trains until `stop` is set, a configured limit is reached or the receive path goes, then
+/// writes the final checkpoint (with the replay when `learner.snapshot_replay`). The
+/// inserting thread runs beside it for as long, taking validated batches from `ingest`.
 pub(super) fn train(
     config: &TrainConfig,
     run_id: &str,
     run_dir: &Path,
     start: Start,
+    ingest: Receiver<proto::TransitionBatch>,
     links: Links<'_>,
 ) -> Result<Outcome, ServiceError> {
     let mut trainer = Trainer::new(config, run_id, run_dir, start, links)?;
-    trainer.publish();
-    while !links.stop.load(Ordering::SeqCst) && !trainer.limit_reached() {
-        if !trainer.ingest() {
-            break;
+    let table = Arc::clone(&trainer.table);
+    let (inserting_table, shared) = (&*table, links.shared);
+    std::thread::scope(|scope| {
+        // Closed on every way out, a panic's included, so that the inserting thread ends
+        // and the scope can join it.
+        let closing = CloseOnDrop(&table);
+        let inserting = std::thread::Builder::new()
+            .name("inserting".into())
+            .spawn_scoped(scope, move || super::inserter::insert(inserting_table, &ingest, shared))
+            .map_err(ServiceError::InsertingThread)?;
+        trainer.publish();
+        while !links.stop.load(Ordering::SeqCst) && !trainer.limit_reached() && !table.is_closed() {
+            if let Some(stats) = trainer.learn_step() {
+                trainer.after_update(&stats);
+            }
+            trainer.report();
         }
-        if let Some(stats) = trainer.learn_step() {
-            trainer.after_update(&stats);
-        }
-        let headroom = trainer.share_insert_limit();
-        trainer.report(headroom);
+        drop(closing);
+        inserting.join().map_err(|_| ServiceError::InsertingThreadPanicked)?;
+        trainer.finish()
+    })
+}
+
+/// Closes the table when dropped.
+struct CloseOnDrop<'a>(&'a Table);
+
+impl Drop for CloseOnDrop<'_> {
+    fn drop(&mut self) {
+        self.0.close();
     }
-    trainer.finish()
 }
 
 /// The training loop's state.
@@ -73,8 +97,8 @@ struct Trainer<'a> {
     links: Links<'a>,
     config_json: serde_json::Value,
     dqn: Dqn,
-    replay: Replay,
-    rate: RateLimiter,
+    /// Replay and the rate limiter, shared with the inserting thread.
+    table: Arc<Table>,
     rng: ChaCha8Rng,
     sample: SampledBatch,
     progress: Progress,
@@ -141,8 +165,7 @@ impl<'a> Trainer<'a> {
             Some(r) if r.config() == config.replay && r.obs_dim() == config.env.policy_input_dim() => r,
             _ => Replay::new(config.replay.clone(), config.env.policy_input_dim())?,
         };
-        let mut rate = RateLimiter::new(config.rate);
-        rate.reset(replay.len());
+        let table = Table::new(replay, RateLimiter::new(config.rate), progress.env_steps, progress.physics_steps);
         Ok(Self {
             config,
             run_id,
@@ -152,8 +175,7 @@ impl<'a> Trainer<'a> {
             rng: ChaCha8Rng::seed_from_u64(config.dqn.seed ^ progress.updates),
             telemetry: Telemetry::open(run_dir, &progress)?,
             dqn,
-            replay,
-            rate,
+            table: Arc::new(table),
             sample: SampledBatch::default(),
             prior_seconds: progress.train_seconds,
             progress,
@@ -174,75 +196,32 @@ impl<'a> Trainer<'a> {
         let elapsed = self.session_start.elapsed().as_secs_f64();
         (l.max_updates > 0 && self.progress.updates >= l.max_updates)
             || (l.max_seconds > 0.0 && elapsed >= l.max_seconds)
-            || (l.max_env_steps > 0 && self.progress.env_steps >= l.max_env_steps)
+            || (l.max_env_steps > 0 && self.table.env_steps() >= l.max_env_steps)
     }
 
-    /// Moves what has arrived into replay, waiting briefly only when there is nothing to
-    /// train on. False once the edge has gone (the process is shutting down).
-    fn ingest(&mut self) -> bool {
-        let batch_size = self.config.dqn.batch_size;
-        let wait = if self.rate.can_sample(batch_size) { Duration::ZERO } else { Duration::from_millis(5) };
-        let mut next = match self.links.ingest.recv_timeout(wait) {
-            Ok(batch) => Some(batch),
-            Err(RecvTimeoutError::Timeout) => None,
-            Err(RecvTimeoutError::Disconnected) => return false,
-        };
-        // At most one queue's worth per turn, so that arrivals cannot starve learning, and a
-        // whole one, so that inserts keep up with any flood the queue admitted.
-        let mut drained = 0;
-        let mut received = 0;
-        while let Some(batch) = next.take() {
-            self.links.shared.queued_transitions.fetch_sub(batch.len() as u64, Ordering::Relaxed);
-            received += insert_batch(&mut self.replay, &batch, self.links.shared);
-            self.progress.env_steps += batch.len() as u64;
-            self.progress.physics_steps += batch.physics_steps;
-            drained += 1;
-            if drained < self.config.learner.ingest_queue {
-                next = self.links.ingest.try_recv().ok();
-            }
-        }
-        self.rate.record_insert(received, self.replay.len());
-        let departed = std::mem::take(&mut *lock(&self.links.shared.departed));
-        if !departed.is_empty() {
-            // Everyone not live goes, including actors whose last batches arrived after they
-            // had already been released.
-            let live = self.links.shared.connected();
-            self.replay.release_streams(|actor| live.contains(&actor));
-        }
-        true
-    }
-
-    /// Tells the credit publisher how many admitted transitions the rate limiter takes in
-    /// all: those admitted so far plus its headroom (`u64::MAX` when inserts are not
-    /// limited). An absolute count, so that a stalled training thread stops the credit once
-    /// its headroom is used rather than granting it again every round. Returns the headroom
-    /// (None when inserts are not limited).
-    fn share_insert_limit(&self) -> Option<u64> {
-        let shared = self.links.shared;
-        // Admitted first: a batch admitted in between is then also counted as queued, which
-        // only lowers the limit.
-        let admitted = shared.admitted_transitions.load(Ordering::Relaxed);
-        let queued = shared.queued_transitions.load(Ordering::Relaxed);
-        let headroom = self.rate.insert_headroom(self.replay.len(), queued);
-        let limit = headroom.map_or(u64::MAX, |headroom| admitted.saturating_add(headroom));
-        shared.insert_limit.store(limit, Ordering::Relaxed);
-        headroom
+    /// The table's counts of what the actors sent, into the progress a checkpoint records.
+    fn count_env_steps(&mut self) {
+        self.progress.env_steps = self.table.env_steps();
+        self.progress.physics_steps = self.table.physics_steps();
     }
 
     /// The RL step: sample a minibatch (n-step returns, importance weights when
     /// prioritised), take one Double DQN gradient step on it, and re-score what was sampled.
-    /// None when the rate limiter or the replay's size says to wait.
+    /// None when the rate limiter or the replay's size says to wait, and inserts did not
+    /// change that within [`SAMPLE_WAIT`].
     fn learn_step(&mut self) -> Option<UpdateStats> {
         let (batch_size, gamma) = (self.config.dqn.batch_size, self.config.dqn.gamma);
-        if !self.rate.can_sample(batch_size) || self.replay.len() < batch_size {
-            return None;
-        }
         let beta = self.config.replay.prioritized.map_or(0.0, |p| p.beta(self.progress.updates));
-        self.replay.sample(batch_size, gamma, beta, &mut self.rng, &mut self.sample).ok()?;
-        let stats = self.dqn.update(&to_batch(&self.sample, batch_size, self.replay.sampler().is_weighted()));
-        self.rate.record_sample(batch_size);
+        let weighted = {
+            let mut table = self.table.ready_to_sample(batch_size, SAMPLE_WAIT)?;
+            table.replay.sample(batch_size, gamma, beta, &mut self.rng, &mut self.sample).ok()?;
+            table.rate.record_sample(batch_size);
+            table.replay.sampler().is_weighted()
+        };
+        let stats = self.dqn.update(&to_batch(&self.sample, batch_size, weighted));
         if stats.applied {
-            self.replay.update_priorities(&self.sample.keys, &stats.td_errors);
+            // Slots overwritten during the update keep their new priorities (stamps).
+            self.table.lock().replay.update_priorities(&self.sample.keys, &stats.td_errors);
         }
         Some(stats)
     }
@@ -303,24 +282,33 @@ impl<'a> Trainer<'a> {
     /// Every checkpoint, periodic or final, records the training time and ε at that moment.
     fn save_checkpoint(&mut self, with_replay: bool) -> Result<PathBuf, CheckpointError> {
         self.progress.train_seconds = self.train_seconds();
+        self.count_env_steps();
         let epsilon = mean_epsilon(self.links.shared);
         self.progress.epsilon = if epsilon.is_finite() { epsilon } else { 0.0 };
-        let replay = with_replay.then_some(&self.replay);
         let dir = self.run_dir.join("checkpoints");
         let keep = self.config.learner.keep_checkpoints;
+        // The replay is written under the table's lock: inserts wait for the snapshot.
+        let table = with_replay.then(|| self.table.lock());
+        let replay = table.as_ref().map(|table| &table.replay);
         checkpoint::save(&dir, &self.dqn, self.run_id, &self.progress, &self.config_json, replay, keep)
     }
 
-    /// Status and metrics, when they are due; `insert_headroom` as `share_insert_limit` just
-    /// worked it out.
-    fn report(&mut self, insert_headroom: Option<u64>) {
+    /// Tells the credit publisher how many admitted transitions the rate limiter takes in
+    /// all, then writes status and metrics when they are due.
+    fn report(&mut self) {
+        self.count_env_steps();
+        let (replay_len, replay_open_streams, samples_per_insert, insert_headroom) = {
+            let table = self.table.lock();
+            let headroom = share_insert_limit(&table, self.links.shared);
+            (table.replay.len(), table.replay.open_streams(), table.rate.realised_samples_per_insert(), headroom)
+        };
         let now = TrainingNow {
             progress: &self.progress,
-            replay_len: self.replay.len(),
-            replay_open_streams: self.replay.open_streams(),
+            replay_len,
+            replay_open_streams,
             train_seconds: self.train_seconds(),
             last_checkpoint: self.last_checkpoint.as_deref(),
-            samples_per_insert: self.rate.realised_samples_per_insert(),
+            samples_per_insert,
             insert_headroom,
         };
         let every = self.config.learner.status_every_s;
@@ -348,6 +336,7 @@ impl<'a> Trainer<'a> {
     /// The last metrics and the final checkpoint.
     fn finish(mut self) -> Result<Outcome, ServiceError> {
         // What arrived since the last flush still reaches the metrics.
+        self.count_env_steps();
         let (seconds, env_steps) = (self.train_seconds(), self.progress.env_steps);
         self.telemetry.flush(self.links.shared, seconds, env_steps);
         let path = self.save_checkpoint(self.config.learner.snapshot_replay)?;
@@ -357,30 +346,21 @@ impl<'a> Trainer<'a> {
     }
 }
 
-/// Stores a validated batch; counts it in its actor's view.
-fn insert_batch(replay: &mut Replay, batch: &proto::TransitionBatch, shared: &Shared) -> usize {
-    let dim = batch.obs_dim as usize;
-    let mut inserted = 0;
-    for i in 0..batch.len() {
-        let transition = Transition {
-            observation: &batch.observations[i * dim..(i + 1) * dim],
-            // Validated against the action count, which is at most 15² = 225.
-            action: u8::try_from(batch.actions[i]).unwrap_or(u8::MAX),
-            reward: batch.rewards[i],
-            next_observation: &batch.next_observations[i * dim..(i + 1) * dim],
-            terminated: batch.terminated[i],
-            truncated: batch.truncated[i],
-        };
-        let stream = StreamId { actor: batch.actor_id, env: batch.env_ids[i] };
-        if replay.insert(stream, &transition).is_ok() {
-            inserted += 1;
-        }
-    }
-    let mut actors = lock(&shared.actors);
-    let view = actors.entry(batch.actor_id).or_default();
-    view.transitions += inserted as u64;
-    view.batches += 1;
-    inserted
+/// Tells the credit publisher how many admitted transitions the rate limiter takes in all:
+/// those admitted so far plus its headroom (`u64::MAX` when inserts are not limited). An
+/// absolute count, so that a stalled training thread stops the credit once its headroom is
+/// used rather than granting it again every round. Returns the headroom (None when inserts
+/// are not limited).
+fn share_insert_limit(table: &TableState, shared: &Shared) -> Option<u64> {
+    // Admitted first: a batch admitted in between is then also counted as queued, which only
+    // lowers the limit. The inserting thread counts a batch out of the queue only after the
+    // rate limiter has it, which also only lowers it.
+    let admitted = shared.admitted_transitions.load(Ordering::Relaxed);
+    let queued = shared.queued_transitions.load(Ordering::Relaxed);
+    let headroom = table.rate.insert_headroom(table.replay.len(), queued);
+    let limit = headroom.map_or(u64::MAX, |headroom| admitted.saturating_add(headroom));
+    shared.insert_limit.store(limit, Ordering::Relaxed);
+    headroom
 }
 
 /// A sampled minibatch as tensors (`batch` rows).

@@ -102,6 +102,9 @@ enum Attack {
     ReplayIncarnation,
     /// `--count` made-up liveliness tokens held for `--seconds`, to take every free slot.
     Squat,
+    /// Valid episode statistics and status reports from its own live id, as fast as the link
+    /// takes them, for `--seconds`: more than its share of the metrics and status.
+    Hog,
 }
 
 fn main() -> anyhow::Result<()> {
@@ -357,6 +360,32 @@ async fn attack(
             }
             hold_and_report(kind, sent, hold).await?;
             drop(tokens);
+        }
+        Attack::Hog => {
+            let _token = session.liveliness().declare_token(keys::alive_actor(run, id)).await.map_err(err("token"))?;
+            tokio::time::sleep(Duration::from_millis(500)).await;
+            let episode = proto::EpisodeStats {
+                protocol_version: PROTOCOL_VERSION,
+                run_id: run.to_string(),
+                actor_id: id,
+                speed: 9.0,
+                distance: 90.0,
+                duration: 10.0,
+                epsilon: 0.1,
+                ..Default::default()
+            }
+            .encode_to_vec();
+            let status = status_report(run, id, 0.1);
+            let end = Instant::now() + hold;
+            while Instant::now() < end {
+                for _ in 0..100 {
+                    put(session, &keys::stats(run, id), episode.clone()).await?;
+                    put(session, &keys::status(run, id), status.clone()).await?;
+                    sent += 2;
+                }
+            }
+            // Held until they have arrived: a token that left first would make them not live.
+            tokio::time::sleep(Duration::from_secs(1)).await;
         }
         Attack::Tokens => {
             let mut tokens = Vec::new();

@@ -169,6 +169,21 @@ fn compose_trains_and_survives_a_killed_and_a_disconnected_actor() {
     );
     compose.command(&["up", "-d"]);
     wait_healthy(&compose.container("learner", 1), Duration::from_secs(150));
+    for image in ["crawler-learner", "crawler-actor"] {
+        assert_eq!(docker(&["inspect", "--format", "{{.Config.User}}", image]).trim(), "10001:10001", "{image}");
+    }
+    // Every program runs unprivileged and cannot gain privileges, the learner included,
+    // whose entry point starts as root to hand ./runs over.
+    for service in ["learner", "actor"] {
+        let process = docker(&["exec", &compose.container(service, 1), "cat", "/proc/1/status"]);
+        let field = |name: &str| {
+            process.lines().find_map(|l| l.strip_prefix(name)).map(|v| v.split_whitespace().collect::<Vec<_>>())
+        };
+        let uid = field("Uid:").unwrap_or_default();
+        assert!(!uid.is_empty() && uid.iter().all(|id| *id != "0"), "{service} runs as root: {process}");
+        assert_eq!(field("NoNewPrivs:"), Some(vec!["1"]), "{service}: {process}");
+        assert_eq!(field("CapEff:"), Some(vec!["0000000000000000"]), "{service}: {process}");
+    }
 
     // Transitions flow from both actors (ids assigned by the learner) and weights reach them.
     compose.wait_for(Duration::from_secs(120), "two actors training with fresh weights", |s| {

@@ -411,6 +411,26 @@ fn attack_suite(learner: &mut Learner, link: &Link, run: &str, log_dir: &Path) {
     assert!(late.is_running(), "{}", late.log_text());
     drop(late);
 
+    // A live sender floods valid episode statistics and status reports: it takes its share
+    // of the metrics and its rate of status, the excess is dropped and counted under its
+    // name, and the genuine actors' data and reports go on as before.
+    let before = learner.status().unwrap();
+    let (mut hog, lines) = attack_in_background(link, run, "hog", 15.0);
+    let during = learner.wait_for(Duration::from_secs(30), "the hog's excess counted under its name", |s| {
+        u64_at(s, "/over_share/actor-900/statuses") >= 100
+            && u64_at(s, "/over_share/actor-900/episodes") >= 100
+            && (0..2).all(|id| {
+                let pointer = format!("/actors/{id}/transitions");
+                u64_at(s, &pointer) > u64_at(&before, &pointer)
+            })
+    });
+    eprintln!("over share during the hog: {}", during["over_share"]);
+    let genuine = during["over_share"].as_object().unwrap();
+    assert!(!genuine.contains_key("actor-0") && !genuine.contains_key("actor-1"), "{during:#}");
+    assert!(rejected(&during, "over_share") >= 200, "{during:#}");
+    assert!(hog.wait().unwrap().success());
+    drop(lines);
+
     // Training went on, the genuine actors follow the learner, state stayed bounded.
     let now = learner.status().unwrap();
     let (updates, since) = (u64_at(&now, "/updates"), u64_at(&now, "/weights_version"));
