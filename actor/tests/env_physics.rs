@@ -104,11 +104,12 @@ fn a_crawler_left_with_the_motors_off_comes_to_rest() {
 fn the_soft_shoulder_pair_takes_a_tenth_of_the_shoulders_acceleration_as_mujocos_does() {
     // One step from rest in the air at q = (−0.4, 0.2) rad. MuJoCo, on the study's model,
     // turns the shoulder's rate by +3.190 rad/s under torques (1, 0) with the base–link 1 pair
-    // and +3.611 without it (`scripts/mujoco-check pair`'s states; EXPERIMENTS.md, "Session
-    // 37"): the pair takes 11.7 % of the motor's acceleration. The viscous stand-in, which
-    // acts only on a rate, takes none of it from rest; the soft constraint takes MuJoCo's
-    // share. From a −10 rad/s swing with the motors off, both slow the shoulder beyond what
-    // gravity and the arm alone do (MuJoCo: +0.571 with the pair, +0.369 without).
+    // and +3.611 without it (`scripts/mujoco-check pair`'s states; EXPERIMENTS.md, "Two
+    // faults in the soft limits…"): the pair takes 11.7 % of the motor's acceleration. The
+    // viscous stand-in, which acts only on a rate, takes none of it from rest; the soft
+    // constraint takes MuJoCo's share. From a −10 rad/s swing with the motors off, both slow
+    // the shoulder beyond what gravity and the arm alone do (MuJoCo: +0.571 with the pair,
+    // +0.369 without).
     let one_step = |shoulder_pair: ShoulderPair, shoulder_rate: f32, torques: [f32; 2]| {
         let mut crawler = Crawler::new(EnvConfig { action_repeat: 1, shoulder_pair, ..endless() }, 0);
         crawler.reset_to([-0.4, 0.2]);
@@ -755,10 +756,11 @@ fn a_stiffer_floor_stops_a_drop_more_sharply_and_zero_keeps_rapiers_floor() {
     assert_eq!(drop([60.0, 60.0]), own, "[0, 0] is rapier's 60 Hz floor, bit for bit");
     let stiff = drop([2000.0, 2000.0]);
     assert_eq!(stiff.2, 2000.0);
-    // Session 18: from the same states MuJoCo's base lands in sharper pulses than this
-    // engine's at 60 Hz. rapier stops an impact with a velocity constraint whatever the
-    // stiffness, which sets how fast the remaining overlap is pushed out: a stiffer floor
-    // holds the base a little higher and pushes back a little harder (about 8 % here).
+    // From the same states MuJoCo's base lands in sharper pulses than this engine's at
+    // 60 Hz (EXPERIMENTS.md, "The landing force in both engines…"). rapier stops an impact
+    // with a velocity constraint whatever the stiffness, which sets how fast the remaining
+    // overlap is pushed out: a stiffer floor holds the base a little higher and pushes back
+    // a little harder (about 8 % here).
     assert!(stiff.0 > own.0, "a 2 kHz floor stops the drop with a higher peak: {stiff:?} against {own:?}");
     assert!(stiff.1 < own.1, "and lets the base sink less: {stiff:?} against {own:?}");
 }

@@ -21,6 +21,11 @@ pub const MAX_BASE_IMPACT_PENALTY: f32 = 50.0;
 /// only refuses weights that would charge any touch of a limit the whole cap.
 pub const MAX_JOINT_LIMIT_PENALTY: f32 = 10_000.0;
 
+/// Longest episode, in physics steps: 100 times the study's 200 s at its 2 ms step. At the
+/// largest `dt` it is 200 000 s of simulated time, inside the protocol's bound on an episode's
+/// duration (`crawler_proto::validate::report_limits::MAX_DURATION`).
+pub const MAX_EPISODE_STEPS: u32 = 10_000_000;
+
 /// Which way along x the crawler is rewarded for moving.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, Default)]
 #[serde(rename_all = "lowercase")]
@@ -51,8 +56,9 @@ pub enum ShoulderPair {
     #[default]
     SoftConstraint,
     /// A viscous torque against the shoulder's rate (`model::SHOULDER_DAMPING`), fitted over
-    /// rates alone: it leaves the motor's own acceleration whole. The default until session 38;
-    /// kept to replay earlier runs' physics.
+    /// rates alone: it leaves the motor's own acceleration whole, where the study's model takes
+    /// a tenth of it (EXPERIMENTS.md, "The shoulder pair as MuJoCo's soft constraint…"). Kept
+    /// to replay the physics of runs trained with it.
     Viscous,
 }
 
@@ -87,7 +93,7 @@ pub struct EnvConfig {
     /// a landing is felt a step before the shapes touch. The study's MuJoCo model makes a
     /// contact only once shapes penetrate (geom margin 0), so 0 is the faithful value: it
     /// halves the one-step error of `scripts/mujoco-check replay` from airborne states
-    /// (EXPERIMENTS.md, "Session 13").
+    /// (EXPERIMENTS.md, "Speculative contacts, a roll lever that failed…").
     pub contact_prediction: f32,
     /// Range in degrees from which joint 1's start angle is drawn uniformly.
     pub start_joint1_deg: [f32; 2],
@@ -128,7 +134,7 @@ pub struct EnvConfig {
     /// in magnitude: a second spent 0.01 rad past a limit costs 0.01·w. The joint limits are
     /// soft on the study's model, and from states past a limit this engine moves the base
     /// further than MuJoCo does; a gait that leans on them carries over worse (EXPERIMENTS.md,
-    /// "Session 35").
+    /// "Every checkpoint of a run on the study's model…").
     pub joint_limit_penalty: f32,
     /// Weight w of a penalty on hard landings of the base (0: the study's reward, none). Each
     /// physics step adds −w·dt·max(0, F − `base_impact_threshold`), F being the total normal
@@ -137,7 +143,7 @@ pub struct EnvConfig {
     /// landing costs w per N·s of impulse above what the threshold lets through. On the
     /// study's model the gaits that tumble land the base hard on an edge (130–490 N), and a
     /// millimetre of asymmetry in MuJoCo's contact solution then rolls it onto a side
-    /// (EXPERIMENTS.md, sessions 13–14).
+    /// (EXPERIMENTS.md, "Speculative contacts, a roll lever that failed…").
     pub base_impact_penalty: f32,
     /// The base's contact force, in N, that [`Self::base_impact_penalty`] lets through
     /// without a charge: resting on the floor carries the crawler's weight, about 9 N.
@@ -221,15 +227,25 @@ impl EnvConfig {
         check(torque.is_finite() && torque > 0.0 && torque <= 100.0, "max_torque", torque, "a number in (0, 100] N·m")?;
         let dt = self.dt;
         check(dt.is_finite() && (1e-4..=0.02).contains(&dt), "dt", dt, "a number of seconds in [0.0001, 0.02]")?;
-        check(self.min_episode_steps >= 1, "min_episode_steps", self.min_episode_steps, "at least 1")?;
         check(
-            self.max_episode_steps >= self.min_episode_steps,
+            (1..=MAX_EPISODE_STEPS).contains(&self.min_episode_steps),
+            "min_episode_steps",
+            self.min_episode_steps,
+            "an integer in 1..=10000000",
+        )?;
+        check(
+            (self.min_episode_steps..=MAX_EPISODE_STEPS).contains(&self.max_episode_steps),
             "max_episode_steps",
             self.max_episode_steps,
-            "at least min_episode_steps",
+            "an integer from min_episode_steps up to 10000000",
         )?;
         let progress = self.min_progress_per_step;
-        check(progress.is_finite() && progress >= 0.0, "min_progress_per_step", progress, "a finite number ≥ 0")?;
+        check(
+            progress.is_finite() && (0.0..=0.01).contains(&progress),
+            "min_progress_per_step",
+            progress,
+            "metres in [0, 0.01] per physics step (0: never ends an episode)",
+        )?;
         let iters = self.solver_iterations;
         check((1..=100).contains(&iters), "solver_iterations", iters, "an integer in 1..=100")?;
         let prediction = self.contact_prediction;
@@ -298,10 +314,10 @@ impl EnvConfig {
         self.randomization.validate()?;
         for (key, range) in [("start_joint1_deg", self.start_joint1_deg), ("start_joint2_deg", self.start_joint2_deg)] {
             check(
-                range.iter().all(|v| v.is_finite()) && range[0] <= range[1],
+                range.iter().all(|v| v.is_finite() && (-180.0..=180.0).contains(v)) && range[0] <= range[1],
                 key,
                 format!("{range:?}"),
-                "[low, high] with low ≤ high, in degrees",
+                "[low, high] with -180 ≤ low ≤ high ≤ 180, in degrees",
             )?;
         }
         Ok(())

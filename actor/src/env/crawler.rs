@@ -372,16 +372,17 @@ impl Crawler {
     /// `a₀ < a_ref`). The step is first taken from a copy of the world with every limit off;
     /// a limit whose joint ends that step slower than its target rate is engaged and the step
     /// taken again from the copy. So the free acceleration is rapier's own, with gravity,
-    /// contacts, the free base and the other joint, rather than an estimate (the estimate
-    /// from the motor torques alone, used until session 36, left 12 % of the shoulder's
-    /// engaged steps pulling the joint towards its limit). Steps with no joint past a limit
-    /// pay for neither the copy nor the second step.
+    /// contacts, the free base and the other joint, rather than an estimate (an estimate
+    /// from the motor torques alone left 12 % of the shoulder's engaged steps pulling the
+    /// joint towards its limit; EXPERIMENTS.md, "Soft limits that only push"). Steps with no
+    /// joint past a limit pay for neither the copy nor the second step.
     fn step_with_soft_limits(&mut self, limits: [Option<SoftLimitTarget>; 2]) {
         if limits == [None; 2] {
             // A limit engaged at the last step must not drive its joint on at that step's
-            // target rate now that the joint is back in range (until session 37 it did: a
-            // crawler left at rest with the knee just past its limit crept, both joints
-            // turning at a steady 0.4-0.8 rad/s under zero torque).
+            // target rate now that the joint is back in range: if it did, a crawler left at
+            // rest with the knee just past its limit would creep, both joints turning at a
+            // steady 0.4-0.8 rad/s under zero torque (EXPERIMENTS.md, "Two faults in the soft
+            // limits…").
             self.release_engaged_soft_limits();
             self.world.step();
             return;

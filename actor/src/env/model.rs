@@ -40,7 +40,8 @@ pub const SHOULDER_DAMPING: f32 = 0.0069;
 /// constraint on the shoulder's rate, under which one step changes the rate by
 /// `dt·[(1 − d)·a₀ + d·a_ref]`, with a₀ the acceleration without the pair, `a_ref = −B·q̇1`
 /// and the impedance `d = 0.054 + 0.064·cos q1`, B ≈ 104 /s (`scripts/mujoco-check pair`,
-/// R² = 0.9965 over 400 random airborne states; EXPERIMENTS.md, "Session 37").
+/// R² = 0.9965 over 400 random airborne states; EXPERIMENTS.md, "Two faults in the soft
+/// limits…").
 ///
 /// This engine solves it as a velocity motor on a second base–link 1 joint. rapier spreads a
 /// motor over its substeps as a damper, so the same effect per step takes the motor's own

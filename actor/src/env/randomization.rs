@@ -37,7 +37,8 @@ pub struct Randomization {
     /// legged_gym's `push_robots` (0: never). On the study's model the fast gaits fail by
     /// rolling onto a side; this engine rolls the symmetric crawler far less (the tumbling
     /// square wave: 0.3–5° of side tilt after 1 s here, 38° there), so without pushes a
-    /// policy seldom meets a roll (EXPERIMENTS.md, "State replay" and "Session 13").
+    /// policy seldom meets a roll (EXPERIMENTS.md, "State replay" and "Speculative
+    /// contacts…").
     pub push_interval_s: f32,
     /// Largest roll rate a push adds, rad/s; each push draws uniformly from ±this.
     pub push_roll_rate: f32,
@@ -45,8 +46,8 @@ pub struct Randomization {
     /// `[0, 0]` keeps rapier's own (60 Hz). From the same states the study's model lands the
     /// base in sharper pulses, 2.2× this engine's landing impulse at 60 Hz, and stiffer
     /// contacts close most of that gap but move the trajectory elsewhere (EXPERIMENTS.md,
-    /// "Session 18"), so no single value is faithful: a policy trained over a range must
-    /// cope with both kinds of landing.
+    /// "The landing force in both engines…"), so no single value is faithful: a policy
+    /// trained over a range must cope with both kinds of landing.
     pub floor_contact_hz: [f32; 2],
 }
 
@@ -230,8 +231,8 @@ impl EpisodePhysics {
 }
 
 /// Stiffest floor contact a randomisation may draw, Hz: 10 kHz already lands the base with
-/// 0.91× MuJoCo's impulse (EXPERIMENTS.md, "Session 18"); beyond 100 kHz the spring is far
-/// stiffer than one 2 ms step can resolve.
+/// 0.91× MuJoCo's impulse (EXPERIMENTS.md, "The landing force in both engines…"); beyond
+/// 100 kHz the spring is far stiffer than one 2 ms step can resolve.
 pub const MAX_FLOOR_CONTACT_HZ: f32 = 100_000.0;
 
 #[cfg(test)]

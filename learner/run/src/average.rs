@@ -2,7 +2,8 @@
 //!
 //! Why: at the transfer preset's annealed learning rate DQN's greedy gait still changes from
 //! one checkpoint to the next, and on the study's MuJoCo model checkpoints 5 000 updates apart
-//! crawl anywhere from 0.35 to 0.6 m/s, some with flips (EXPERIMENTS.md, sessions 20 and 21).
+//! crawl anywhere from 0.35 to 0.6 m/s, some with flips (EXPERIMENTS.md, "A stiffer floor in the
+//! randomisation" and "The committed recipe on three seeds…").
 //! Any one checkpoint ships that noise. The mean of the last few checkpoints' weights (as
 //! stochastic weight averaging does, and as translation models average their last
 //! checkpoints; Nikishin et al. 2018 for RL) lies inside the region they wander in, and its

@@ -63,8 +63,9 @@ pub struct Evaluation {
     #[serde(default)]
     pub perturbed: bool,
     /// The perturbations they ran under (absent: nominal physics, or a record older than
-    /// this field). `eval --perturbed`'s set has changed (session 12 added roll pushes), so a
-    /// resumed run compares against an old best only if it was measured under the same set.
+    /// this field). `eval --perturbed`'s set has changed (it gained roll pushes: EXPERIMENTS.md,
+    /// "Three more levers…"), so a resumed run compares against an old best only if it was
+    /// measured under the same set.
     #[serde(default)]
     pub perturbations: Option<Randomization>,
     pub mean_speed: f64,

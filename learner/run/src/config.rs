@@ -445,24 +445,29 @@ impl TrainConfig {
             return Err(invalid("replay.n_step", self.replay.n_step.to_string(), "an integer in 1..=100"));
         }
         if let Some(per) = self.replay.prioritized
-            && !((0.0..=1.0).contains(&per.alpha) && (0.0..=1.0).contains(&per.beta_start) && per.epsilon >= 0.0)
+            && !((0.0..=1.0).contains(&per.alpha)
+                && (0.0..=1.0).contains(&per.beta_start)
+                && (0.0..=1.0).contains(&per.epsilon)
+                && per.beta_updates >= 1)
         {
             return Err(invalid(
                 "replay.prioritized",
                 format!("{per:?}"),
-                "alpha and beta_start in [0, 1], epsilon ≥ 0",
+                "alpha, beta_start and epsilon in [0, 1], beta_updates ≥ 1",
             ));
         }
         let r = &self.rate;
-        if !(r.samples_per_insert.is_finite() && r.samples_per_insert >= 0.0) {
+        // Beyond 10 000 samples per insert the insert credit would round to nothing and the
+        // actors wait for ever.
+        if !(0.0..=10_000.0).contains(&r.samples_per_insert) {
             return Err(invalid(
                 "rate.samples_per_insert",
                 r.samples_per_insert.to_string(),
-                "a number ≥ 0 (0: no limit)",
+                "a number in [0, 10000] (0: no limit)",
             ));
         }
-        if !(r.error_buffer.is_finite() && r.error_buffer >= 0.0) {
-            return Err(invalid("rate.error_buffer", r.error_buffer.to_string(), "a finite number ≥ 0"));
+        if !(0.0..=1e12).contains(&r.error_buffer) {
+            return Err(invalid("rate.error_buffer", r.error_buffer.to_string(), "samples in [0, 1e12]"));
         }
         if r.limit_inserts && r.samples_per_insert <= 0.0 {
             return Err(invalid(
@@ -751,6 +756,18 @@ mod tests {
             let err = TrainConfig::from_toml("", "test", &[assignment.into()]).unwrap_err().to_string();
             assert!(err.contains(key), "{assignment}: {err}");
         }
+        // Keys of sections that have no defaults, over a whole section.
+        let sections = "[replay]\ncapacity = 10000\nn_step = 1\n[rate]\nsamples_per_insert = 4.0\nwarmup = 1000\nerror_buffer = 512.0\n";
+        assert!(TrainConfig::from_toml(sections, "test", &[]).is_ok());
+        for (assignment, key) in [
+            ("rate.samples_per_insert=1e30", "rate.samples_per_insert"),
+            ("rate.error_buffer=1e30", "rate.error_buffer"),
+            ("replay.prioritized={alpha=0.6, beta_start=0.4, beta_updates=0, epsilon=1e-3}", "replay.prioritized"),
+            ("replay.prioritized={alpha=0.6, beta_start=0.4, beta_updates=10, epsilon=1e30}", "replay.prioritized"),
+        ] {
+            let err = TrainConfig::from_toml(sections, "test", &[assignment.into()]).unwrap_err().to_string();
+            assert!(err.contains(key), "{assignment}: {err}");
+        }
         // Finite but absurd: durations, rates and scales have ranges, refused by key.
         for (assignment, key) in [
             ("learner.status_every_s=1e-20", "learner.status_every_s"),
@@ -762,6 +779,9 @@ mod tests {
             ("learner.weights_every=1000000000", "learner.weights_every"),
             ("learner.keep_checkpoints=1000000000", "learner.keep_checkpoints"),
             ("actor.status_interval_s=1e-20", "actor.status_interval_s"),
+            ("env.max_episode_steps=4000000000", "env.max_episode_steps"),
+            ("env.min_progress_per_step=1e30", "env.min_progress_per_step"),
+            ("env.start_joint1_deg=[-1e30, 0.0]", "env.start_joint1_deg"),
         ] {
             let err = TrainConfig::from_toml("", "test", &[assignment.into()]).unwrap_err().to_string();
             assert!(err.contains(key), "{assignment}: {err}");

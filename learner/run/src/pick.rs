@@ -1,22 +1,25 @@
 //! The checkpoint to ship, chosen among a run's candidates by how often they fail on the
 //! nominal physics and then under perturbed physics.
 //!
-//! Why: a transfer run ends with three candidates (`checkpoints/average`, the last checkpoint
-//! and `checkpoints/best`), and on the nominal physics they can all crawl without a flip or
-//! a stuck episode in 100 while one of them, or all three, tumble on the study's MuJoCo model
-//! (EXPERIMENTS.md, sessions 22, 23 and 25). Played under `eval --perturbed`'s physics, the
-//! ones that tumbled there failed far more often here (session 25: 203 flips and 25 of 100
-//! stuck, against 0–24 flips and 0–4 stuck for averages that crawled there upright). So the
-//! pick is the candidate that fails in the fewest perturbed episodes, the faster on a tie,
-//! and a pick that still fails often is reported as a risk: the evidence that a gait will
-//! not carry over, for a user with no MuJoCo installed.
+//! Why: a transfer run ends with three candidates (`checkpoints/average`, the last
+//! checkpoint and `checkpoints/best`), and on the nominal physics they can all crawl
+//! without a flip or a stuck episode in 100 while one of them, or all three, tumble on the
+//! study's MuJoCo model (EXPERIMENTS.md, "A warm-up measured in updates, not seconds",
+//! "Motor strength drawn around the nominal torque" and "The recipe at 120 k + 380–440 k
+//! updates…"). Played under `eval --perturbed`'s physics, the ones that tumbled there
+//! failed far more often here (in the last of those: 203 flips and 25 of 100 stuck, against
+//! 0–24 flips and 0–4 stuck for averages that crawled there upright). So the pick is the
+//! candidate that fails in the fewest perturbed episodes, the faster on a tie, and a pick
+//! that still fails often is reported as a risk: the evidence that a gait will not carry
+//! over, for a user with no MuJoCo installed.
 //!
 //! Before that comes the nominal physics, played for as many episodes: a gait that sticks
 //! from one start in 100 here fails what issue 18 asks of a gait in this env (none stuck of
 //! 100), and the perturbed count, whose differences between candidates are often within the
 //! noise of 100 episodes, twice shipped such a candidate over one that stuck in none and
-//! crawled as fast or faster on the study's model (EXPERIMENTS.md, sessions 29 and 31). So
-//! the candidate failing in the fewest nominal episodes wins first.
+//! crawled as fast or faster on the study's model (EXPERIMENTS.md, "Seeds 0 and 1 through the
+//! pick" and "The weaker pushes on a third seed…"). So the candidate failing in the fewest
+//! nominal episodes wins first.
 //!
 //! The evaluations are `eval`'s and `eval --perturbed`'s (the same seeds, so `eval
 //! --episodes N` and `eval --perturbed --episodes N` reproduce each number), never
@@ -33,13 +36,15 @@ use crate::best::{Evaluation, EvaluationPlan, evaluate_policy};
 use crate::evaluate::{EvaluateError, load_policy};
 
 /// Above this share of failed perturbed episodes the pick is reported as a risk. Of sixteen
-/// end-of-run candidates played on the study's model (EXPERIMENTS.md, sessions 25-29), the
-/// three above the line all tumbled there (19 %, 22 % and 25 % or more failed); of the
-/// thirteen below it, twelve crawled there upright (0-12 %) and one tumbled (11 %, seed 0's
-/// last checkpoint in session 29, which `pick` passed over for one that failed less). So a
+/// end-of-run candidates played on the study's model (EXPERIMENTS.md, from "The recipe at
+/// 120 k + 380–440 k updates…" to "Seeds 0 and 1 through the pick"), the three above the
+/// line all tumbled there (19 %, 22 % and 25 % or more failed); of the thirteen below it,
+/// twelve crawled there upright (0-12 %) and one tumbled (11 %, seed 0's last checkpoint in
+/// "Seeds 0 and 1 through the pick", which `pick` passed over for one that failed less). So a
 /// pick below the line is likelier upright, not certainly: the recipe still plays it there.
 /// The line is drawn for `configs/transfer.toml`: with its landing charge halved, all three
-/// candidates of a run tumbled there while failing in only 3-10 % (session 29).
+/// candidates of a run tumbled there while failing in only 3-10 % (EXPERIMENTS.md, "A lighter
+/// landing charge (w = 5)…").
 pub const RISKY_FAILURE_SHARE: f64 = 0.15;
 
 /// `pick`'s exit status when it chose a checkpoint that is a risk (the path is still printed):
@@ -311,8 +316,9 @@ mod tests {
 
     #[test]
     fn a_candidate_that_fails_on_the_nominal_physics_loses_to_one_that_does_not() {
-        // Session 31's seed 2: the best checkpoint stuck in 1 of 100 nominal episodes and
-        // failed in 9 perturbed ones; the last checkpoint in none and 14.
+        // Seed 2 in EXPERIMENTS.md, "The weaker pushes on a third seed…": the best checkpoint
+        // stuck in 1 of 100 nominal episodes and failed in 9 perturbed ones; the last
+        // checkpoint in none and 14.
         let selection =
             choose_from(&[Some(measured(0.55, 15)), Some(measured(0.546, 14)), Some(sticking(1, 0.571, 9))]).unwrap();
         assert_eq!(selection.chosen, 1);

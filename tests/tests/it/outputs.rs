@@ -597,14 +597,16 @@ fn mujoco_state_replay_lands_single_steps_near_the_study_model() {
     }
     // From the same states the base gets about as far here as there in 5 steps (measured:
     // 1.03; the lead grows to 1.11 over 50 steps of the regression gait, EXPERIMENTS.md,
-    // "Session 35"); a progress read from the wrong coordinate or state would leave this band.
+    // "Every checkpoint of a run on the study's model…"); a progress read from the wrong
+    // coordinate or state would leave this band.
     let progress = faithful["drift"]["5"]["progress_ratio"].as_f64().unwrap();
     assert!((0.9..1.15).contains(&progress), "base progress over 5 steps, here / there: {progress}");
     // The base's contact force, what the landing penalty charges, from the same states under
     // the same torques. Over the 5-step horizon the normal impulse here is about 0.7 of
-    // MuJoCo's (rapier spreads a landing over more steps; EXPERIMENTS.md, "Session 18"), and a
-    // landing above the threshold here is one there too: a reading that lost the 1/dt, counted
-    // the link 1 pair, or charged phantom landings would leave these bounds.
+    // MuJoCo's (rapier spreads a landing over more steps; EXPERIMENTS.md, "The landing force in
+    // both engines…"), and a landing above the threshold here is one there too: a reading
+    // that lost the 1/dt, counted the link 1 pair, or charged phantom landings would leave
+    // these bounds.
     let contact = &faithful["base_contact"]["by_window_steps"]["5"];
     let (ours, theirs) = (
         contact["normal_impulse_ns"]["rapier"].as_f64().unwrap(),
@@ -645,10 +647,10 @@ fn mujoco_state_replay_lands_single_steps_near_the_study_model() {
 /// The MJCF's base–link 1 contact pair (`scripts/mujoco-check pair`): on the study's model it
 /// takes about a tenth of every shoulder acceleration, the motor's own included: a soft
 /// constraint on the shoulder's rate, fitted from one step with and without it
-/// (EXPERIMENTS.md, "Session 37"). Both of this env's forms of it (`env.shoulder_pair`) must
-/// land nearer MuJoCo-with-the-pair than MuJoCo-without-it does, and the soft constraint
-/// nearer than the viscous stand-in (measured on 400 states, shoulder rate: soft 0.087,
-/// viscous 0.175, MuJoCo without the pair 0.222 rad/s).
+/// (EXPERIMENTS.md, "Two faults in the soft limits…"). Both of this env's forms of it
+/// (`env.shoulder_pair`) must land nearer MuJoCo-with-the-pair than MuJoCo-without-it does,
+/// and the soft constraint nearer than the viscous stand-in (measured on 400 states, shoulder
+/// rate: soft 0.087, viscous 0.175, MuJoCo without the pair 0.222 rad/s).
 #[test]
 #[ignore = "needs MuJoCo from PyPI; scripts/test runs it where `scripts/mujoco-check setup` succeeds"]
 fn mujoco_shoulder_pair_is_a_soft_constraint_this_env_approximates() {
@@ -679,7 +681,7 @@ fn mujoco_shoulder_pair_is_a_soft_constraint_this_env_approximates() {
 
 /// `scripts/mujoco-check solvers`: on the study's model the tumbling square wave rolls onto a
 /// side under its own PGS solver, while Newton keeps the symmetric crawler exactly in its
-/// plane. EXPERIMENTS.md ("Session 12") rests on this: the roll that tumbles this
+/// plane. EXPERIMENTS.md ("Three more levers…") rests on this: the roll that tumbles this
 /// project's gaits there is the solver's uneven left/right contact solve, not the gait alone.
 #[test]
 #[ignore = "needs MuJoCo from PyPI; scripts/test runs it where `scripts/mujoco-check setup` succeeds"]

@@ -67,8 +67,8 @@ fn main() -> anyhow::Result<ExitCode> {
     if let Some(evaluation) = selection.chosen_evaluation().filter(|_| selection.risky()) {
         warn!(
             "even the pick failed in {:.0} % of its perturbed episodes (above {:.0} %): runs like it tumbled on the \
-             study's MuJoCo model (EXPERIMENTS.md, sessions 25, 27 and 28); play it there (scripts/mujoco-check eval {}) or \
-             train another seed",
+             study's MuJoCo model (EXPERIMENTS.md, \"Picking the checkpoint to ship\"); play it there \
+             (scripts/mujoco-check eval {}) or train another seed",
             100.0 * failure_share(evaluation),
             100.0 * selection.risky_failure_share,
             chosen.path.display()
