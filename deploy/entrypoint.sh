@@ -50,7 +50,6 @@ fi
 parent=/dev/shm
 [ -d "$parent" ] && [ -w "$parent" ] || parent=/tmp
 private=$(mktemp -d "$parent/crawler-tls.XXXXXX")
-chown "$uid:$gid" "$private"
 # private_copy NAME PATH: copies PATH to $private/NAME.pem, readable by the runtime user only,
 # and prints the copy's path. A missing file is left as given, so the program's error names it.
 private_copy() {
@@ -90,6 +89,10 @@ for name in ca cert key; do
         export "$variable=$(private_copy "$name" "$value")"
     fi
 done
+
+# Handed over only now: until the copies are made it stays root's, so that root needs no
+# capability to write into a directory it does not own (the compose files grant none).
+chown "$uid:$gid" "$private"
 
 # --no-new-privs: nothing the program runs can gain privileges again (setuid files, file
 # capabilities).
