@@ -779,7 +779,7 @@ mod tests {
             ("learner.weights_every=1000000000", "learner.weights_every"),
             ("learner.keep_checkpoints=1000000000", "learner.keep_checkpoints"),
             ("actor.status_interval_s=1e-20", "actor.status_interval_s"),
-            ("env.max_episode_steps=4000000000", "env.max_episode_steps"),
+            ("env.max_episode_steps=10", "env.max_episode_steps"),
             ("env.min_progress_per_step=1e30", "env.min_progress_per_step"),
             ("env.start_joint1_deg=[-1e30, 0.0]", "env.start_joint1_deg"),
         ] {
