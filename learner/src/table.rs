@@ -66,17 +66,19 @@ impl Table {
 
     /// Runs `insert` on the replay (it returns how many transitions replay kept), records
     /// them with the rate limiter, counts `env_steps` received and their `physics_steps`, and
-    /// wakes a training thread that waits to sample.
-    pub fn insert(&self, env_steps: u64, physics_steps: u64, insert: impl FnOnce(&mut Replay) -> usize) {
-        {
+    /// wakes a training thread that waits to sample. Returns what replay kept.
+    pub fn insert(&self, env_steps: u64, physics_steps: u64, insert: impl FnOnce(&mut Replay) -> usize) -> usize {
+        let kept = {
             let mut state = self.lock();
             let kept = insert(&mut state.replay);
             let len = state.replay.len();
             state.rate.record_insert(kept, len);
-        }
+            kept
+        };
         self.env_steps.fetch_add(env_steps, Ordering::Relaxed);
         self.physics_steps.fetch_add(physics_steps, Ordering::Relaxed);
         self.inserted.notify_one();
+        kept
     }
 
     /// The state once a minibatch of `count` may be sampled, waiting at most `timeout` for

@@ -737,6 +737,11 @@ mod tests {
 
     #[test]
     fn nan_infinity_and_overflow_are_refused_with_the_key_named() {
+        // `assignment` over the config `base` is refused, and the error names `key`.
+        let refused = |base: &str, assignment: &str, key: &str| {
+            let err = TrainConfig::from_toml(base, "test", &[assignment.into()]).unwrap_err().to_string();
+            assert!(err.contains(key), "{assignment}: {err}");
+        };
         for (assignment, key) in [
             ("dqn.adam_eps=nan", "dqn.adam_eps"),
             ("rate.error_buffer=nan", "rate.error_buffer"),
@@ -753,8 +758,7 @@ mod tests {
             ("env.position_reward_weight=0.0", "env.position_reward_weight"),
             ("env.position_reward_weight=nan", "env.position_reward_weight"),
         ] {
-            let err = TrainConfig::from_toml("", "test", &[assignment.into()]).unwrap_err().to_string();
-            assert!(err.contains(key), "{assignment}: {err}");
+            refused("", assignment, key);
         }
         // Keys of sections that have no defaults, over a whole section.
         let sections = "[replay]\ncapacity = 10000\nn_step = 1\n[rate]\nsamples_per_insert = 4.0\nwarmup = 1000\nerror_buffer = 512.0\n";
@@ -765,8 +769,7 @@ mod tests {
             ("replay.prioritized={alpha=0.6, beta_start=0.4, beta_updates=0, epsilon=1e-3}", "replay.prioritized"),
             ("replay.prioritized={alpha=0.6, beta_start=0.4, beta_updates=10, epsilon=1e30}", "replay.prioritized"),
         ] {
-            let err = TrainConfig::from_toml(sections, "test", &[assignment.into()]).unwrap_err().to_string();
-            assert!(err.contains(key), "{assignment}: {err}");
+            refused(sections, assignment, key);
         }
         // Finite but absurd: durations, rates and scales have ranges, refused by key.
         for (assignment, key) in [
@@ -783,8 +786,7 @@ mod tests {
             ("env.min_progress_per_step=1e30", "env.min_progress_per_step"),
             ("env.start_joint1_deg=[-1e30, 0.0]", "env.start_joint1_deg"),
         ] {
-            let err = TrainConfig::from_toml("", "test", &[assignment.into()]).unwrap_err().to_string();
-            assert!(err.contains(key), "{assignment}: {err}");
+            refused("", assignment, key);
         }
         // Beyond i64, TOML itself refuses; beyond usize's useful range, the key is named.
         let err = TrainConfig::from_toml("", "test", &["replay.capacity=99999999999999999999".into()]).unwrap_err();

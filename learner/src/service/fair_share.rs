@@ -94,11 +94,21 @@ pub(super) fn share(capacity: usize, senders: usize) -> usize {
     (capacity / senders.max(1)).max(1)
 }
 
+/// Takes one of `share` places for `sender` in `held`; false when it holds them all.
+fn take_place(held: &mut HashMap<Sender, usize>, sender: Sender, share: usize) -> bool {
+    let places = held.entry(sender).or_default();
+    let free = *places < share;
+    if free {
+        *places += 1;
+    }
+    free
+}
+
 /// Per-sender holdings, buckets and drop counts.
 #[derive(Debug, Default)]
 pub(super) struct FairShares {
     budgets: Budgets,
-    queued_batches: HashMap<u32, usize>,
+    queued_batches: HashMap<Sender, usize>,
     pending_episodes: HashMap<Sender, usize>,
     status: HashMap<Sender, TokenBucket>,
     log_lines: HashMap<(Sender, &'static str), TokenBucket>,
@@ -111,16 +121,7 @@ pub(super) struct FairShares {
 
 impl FairShares {
     pub fn new(budgets: Budgets) -> Self {
-        Self {
-            budgets,
-            queued_batches: HashMap::new(),
-            pending_episodes: HashMap::new(),
-            status: HashMap::new(),
-            log_lines: HashMap::new(),
-            unattributed_log_lines: HashMap::new(),
-            over: BTreeMap::new(),
-            over_total: 0,
-        }
+        Self { budgets, ..Self::default() }
     }
 
     fn count_over(&mut self, sender: Sender, which: impl FnOnce(&mut OverShare) -> &mut u64) {
@@ -131,19 +132,18 @@ impl FairShares {
     /// Takes a place in the ingest queue of `capacity` batches for `actor`, one of `actors`
     /// live actors; false (and counted) when it holds its share already.
     pub fn enter_queue(&mut self, actor: u32, capacity: usize, actors: usize) -> bool {
-        let held = self.queued_batches.entry(actor).or_default();
-        if *held >= share(capacity, actors) {
-            self.count_over((NodeKind::Actor, actor), |o| &mut o.batches);
-            return false;
+        let sender = (NodeKind::Actor, actor);
+        let taken = take_place(&mut self.queued_batches, sender, share(capacity, actors));
+        if !taken {
+            self.count_over(sender, |o| &mut o.batches);
         }
-        *held += 1;
-        true
+        taken
     }
 
     /// Gives `actor`'s place in the ingest queue back (its batch was inserted, or the queue
     /// turned it away).
     pub fn leave_queue(&mut self, actor: u32) {
-        if let Some(held) = self.queued_batches.get_mut(&actor) {
+        if let Some(held) = self.queued_batches.get_mut(&(NodeKind::Actor, actor)) {
             *held = held.saturating_sub(1);
         }
     }
@@ -151,13 +151,11 @@ impl FairShares {
     /// Takes a place among `capacity` pending episodes for `sender`, one of `senders` live
     /// senders; false (and counted) when it holds its share already.
     pub fn enter_pending_episodes(&mut self, sender: Sender, capacity: usize, senders: usize) -> bool {
-        let held = self.pending_episodes.entry(sender).or_default();
-        if *held >= share(capacity, senders) {
+        let taken = take_place(&mut self.pending_episodes, sender, share(capacity, senders));
+        if !taken {
             self.count_over(sender, |o| &mut o.episodes);
-            return false;
         }
-        *held += 1;
-        true
+        taken
     }
 
     /// The metrics writer took every pending episode.
@@ -201,9 +199,7 @@ impl FairShares {
 
     /// Drops everything about a sender that left.
     pub fn forget(&mut self, sender: Sender) {
-        if sender.0 == NodeKind::Actor {
-            self.queued_batches.remove(&sender.1);
-        }
+        self.queued_batches.remove(&sender);
         self.pending_episodes.remove(&sender);
         self.status.remove(&sender);
         self.log_lines.retain(|(who, _), _| *who != sender);

@@ -22,11 +22,7 @@ pub(super) fn insert(table: &Table, ingest: &Receiver<proto::TransitionBatch>, s
     while !table.is_closed() {
         match ingest.recv_timeout(POLL) {
             Ok(batch) => {
-                let mut kept = 0;
-                table.insert(batch.len() as u64, batch.physics_steps, |replay| {
-                    kept = insert_batch(replay, &batch);
-                    kept
-                });
+                let kept = table.insert(batch.len() as u64, batch.physics_steps, |replay| insert_batch(replay, &batch));
                 // Out of the queue only once the rate limiter has counted it, so that the
                 // insert limit never counts a batch in neither place.
                 shared.queued_transitions.fetch_sub(batch.len() as u64, Ordering::Relaxed);
