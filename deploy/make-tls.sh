@@ -3,20 +3,31 @@
 # one per actor, all X.509 v3 with the extensions rustls requires (v1 certificates are
 # rejected). Keys are P-256 ECDSA.
 #
-# The subject common name (CN) is the role the learner's access-control policy checks
-# (learner/src/service/access_control.rs): every actor certificate has CN=crawler-actor, the observer
-# certificate (read-only monitoring) CN=crawler-observer. Each actor's own name
-# (crawler-actor-<i>) is in its subjectAltName and its serial number differs.
+# The subject common name (CN) is the identity the learner's access-control policy checks
+# (learner/src/service/access_control.rs, names in proto/src/identity.rs): actor i's
+# certificate has CN=crawler-actor-<i> and may speak only as actor i (ids 0..999); evaluator
+# j's CN=crawler-evaluator-<j> (ids 1000..1999, apart from the actors' since both use the
+# stats and status keys); the observer certificate (read-only monitoring) CN=crawler-observer.
+# An actor started with --id auto takes the id its certificate names. One certificate per
+# actor process: two processes with one certificate would be one actor to the learner.
 #
-# Usage: deploy/make-tls.sh OUT_DIR LEARNER_HOST [ACTORS]
+# Usage: deploy/make-tls.sh OUT_DIR LEARNER_HOST [ACTORS] [EVALUATORS]
 #   LEARNER_HOST: the name or IP actors use to reach the learner (goes in its subjectAltName)
-#   ACTORS:       how many actor certificates to make (default 4)
-# Produces OUT_DIR/ca.pem, learner.{pem,key}, actor-<i>.{pem,key}, observer.{pem,key}.
-# Keep ca.key private. Rerunning reuses the CA and reissues the other certificates.
+#   ACTORS:       how many actor certificates to make, ids 0..ACTORS-1 (default 4, at most 1000)
+#   EVALUATORS:   how many evaluator certificates, ids 1000.. (default 1, at most 1000)
+# Produces OUT_DIR/ca.pem, learner.{pem,key}, actor-<i>.{pem,key}, evaluator-<j>.{pem,key},
+# observer.{pem,key}. Keep ca.key private. Rerunning reuses the CA and reissues the others.
 set -euo pipefail
 out="${1:?usage: make-tls.sh OUT_DIR LEARNER_HOST [ACTORS]}"
 host="${2:?usage: make-tls.sh OUT_DIR LEARNER_HOST [ACTORS]}"
 actors="${3:-4}"
+evaluators="${4:-1}"
+for count in "$actors" "$evaluators"; do
+  if ! [[ "$count" =~ ^[0-9]+$ ]] || ((count > 1000)); then
+    echo "error: ACTORS and EVALUATORS must be whole numbers in 0..1000 (certified ids: actors 0..999, evaluators 1000..1999); got $count" >&2
+    exit 2
+  fi
+done
 days=825
 # Keys are private from the moment they exist (chmod after writing would leave a window);
 # certificates are made readable below.
@@ -56,8 +67,11 @@ EXT
 
 issue learner "$host" "serverAuth,clientAuth" "$san"
 for ((i = 0; i < actors; i++)); do
-  issue "actor-$i" "crawler-actor" "clientAuth" "DNS:crawler-actor-$i"
+  issue "actor-$i" "crawler-actor-$i" "clientAuth" "DNS:crawler-actor-$i"
+done
+for ((j = 1000; j < 1000 + evaluators; j++)); do
+  issue "evaluator-$j" "crawler-evaluator-$j" "clientAuth" "DNS:crawler-evaluator-$j"
 done
 issue observer "crawler-observer" "clientAuth" "DNS:crawler-observer"
 chmod 644 ./*.pem
-echo "TLS material in $(pwd): ca.pem, learner.{pem,key}, actor-0..$((actors - 1)).{pem,key}, observer.{pem,key}" >&2
+echo "TLS material in $(pwd): ca.pem, learner.{pem,key}, actor-0..$((actors - 1)).{pem,key}, evaluator-1000..$((999 + evaluators)).{pem,key}, observer.{pem,key}" >&2

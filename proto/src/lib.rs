@@ -2,12 +2,14 @@
 //!
 //! - [`messages`]: the prost messages, each carrying [`PROTOCOL_VERSION`] and the run id.
 //! - [`keys`]: the zenoh key expressions, all under `crawler/<run>/…`.
+//! - [`identity`]: the certificate common names that say whose keys a session may use.
 //! - [`validate`]: checks of everything received, with typed errors; nothing here panics on
 //!   input from the network.
 //!
 //! Architecture invariant: only types from this crate cross the wire, and every message a
 //! node receives goes through [`validate`] before anything else looks at it.
 
+pub mod identity;
 pub mod keys;
 pub mod messages;
 mod transition_codec;

@@ -116,6 +116,36 @@ pub enum TlsArgsError {
     NotPem { flag: &'static str, path: std::path::PathBuf },
     #[error("{flag} {endpoint:?} is not a tls/ endpoint, but TLS material was given; use e.g. tls/HOST:7447")]
     PlainEndpoint { flag: String, endpoint: String },
+    #[error("{flag} {}: larger than {MAX_PEM_BYTES} bytes, which no certificate or key of ours is; pass the PEM file deploy/make-tls.sh wrote", .path.display())]
+    TooLarge { flag: &'static str, path: std::path::PathBuf },
+    #[error("--tls-cert {}: its first PEM block is not an X.509 certificate ({reason})", .path.display())]
+    NotACertificate { path: std::path::PathBuf, reason: String },
+    #[error("--tls-cert {}: the certificate's subject has no common name, so it names no actor; make it with deploy/make-tls.sh", .path.display())]
+    NoCommonName { path: std::path::PathBuf },
+    #[error("--tls-cert {}: {source}", .path.display())]
+    Identity {
+        path: std::path::PathBuf,
+        #[source]
+        source: crawler_proto::identity::IdentityError,
+    },
+}
+
+/// Largest certificate or key file read, in bytes: a PEM chain of ours is a few kB, and a
+/// path that links to an endless file (`/dev/zero`) must not be read without end.
+pub const MAX_PEM_BYTES: u64 = 1 << 20;
+
+/// Reads a file of at most [`MAX_PEM_BYTES`], whatever its metadata claims (a device or a pipe
+/// reports no size).
+fn read_pem_file(flag: &'static str, path: &std::path::Path) -> Result<Vec<u8>, TlsArgsError> {
+    use std::io::Read;
+    let unreadable = |source| TlsArgsError::Unreadable { flag, path: path.to_path_buf(), source };
+    let file = std::fs::File::open(path).map_err(unreadable)?;
+    let mut bytes = Vec::new();
+    file.take(MAX_PEM_BYTES + 1).read_to_end(&mut bytes).map_err(unreadable)?;
+    if bytes.len() as u64 > MAX_PEM_BYTES {
+        return Err(TlsArgsError::TooLarge { flag, path: path.to_path_buf() });
+    }
+    Ok(bytes)
 }
 
 impl TlsArgs {
@@ -150,16 +180,31 @@ impl TlsFiles {
         for (flag, path) in
             [("--tls-ca", &self.ca_certificate), ("--tls-cert", &self.certificate), ("--tls-key", &self.private_key)]
         {
-            let text = std::fs::read_to_string(path).map_err(|source| TlsArgsError::Unreadable {
-                flag,
-                path: path.clone(),
-                source,
-            })?;
-            if !text.contains("-----BEGIN ") {
+            let bytes = read_pem_file(flag, path)?;
+            if !bytes.windows(11).any(|w| w == b"-----BEGIN ") {
                 return Err(TlsArgsError::NotPem { flag, path: path.clone() });
             }
         }
         Ok(())
+    }
+
+    /// Who this process's certificate says it is: the role and id in its subject's first
+    /// common name (what zenoh's TLS link reads, and what the learner's access-control policy
+    /// matches; `crawler_proto::identity`).
+    pub fn certified(&self) -> Result<crawler_proto::identity::Certified, TlsArgsError> {
+        let path = &self.certificate;
+        let bytes = read_pem_file("--tls-cert", path)?;
+        let not_a_certificate = |reason: String| TlsArgsError::NotACertificate { path: path.clone(), reason };
+        let (_, pem) = x509_parser::pem::parse_x509_pem(&bytes).map_err(|e| not_a_certificate(e.to_string()))?;
+        let certificate = pem.parse_x509().map_err(|e| not_a_certificate(e.to_string()))?;
+        let common_name = certificate
+            .subject()
+            .iter_common_name()
+            .next()
+            .and_then(|cn| cn.as_str().ok())
+            .ok_or_else(|| TlsArgsError::NoCommonName { path: path.clone() })?;
+        crawler_proto::identity::Certified::from_common_name(common_name)
+            .map_err(|source| TlsArgsError::Identity { path: path.clone(), source })
     }
 
     /// zenoh settings (KEY, JSON5) for a TLS link that requires certificates on both ends.
@@ -243,6 +288,46 @@ mod tests {
         let settings = files.zenoh_settings(TlsSide::Connect);
         assert!(settings.iter().any(|(k, v)| k == "transport/link/tls/connect_certificate" && v.contains("ok.pem")));
         assert!(settings.iter().any(|(k, v)| k == "transport/link/tls/enable_mtls" && v == "true"));
+        std::fs::remove_dir_all(&dir).unwrap();
+    }
+
+    /// A self-signed certificate with subject `CN=common_name`, made by openssl as
+    /// deploy/make-tls.sh makes its own.
+    fn certificate(dir: &std::path::Path, common_name: &str) -> TlsFiles {
+        let (pem, key) = (dir.join(format!("{common_name}.pem")), dir.join(format!("{common_name}.key")));
+        let made = std::process::Command::new("openssl")
+            .args(["req", "-x509", "-newkey", "ec", "-pkeyopt", "ec_paramgen_curve:prime256v1", "-nodes", "-days", "1"])
+            .args(["-subj", &format!("/CN={common_name}")])
+            .arg("-keyout")
+            .arg(&key)
+            .arg("-out")
+            .arg(&pem)
+            .output()
+            .unwrap();
+        assert!(made.status.success(), "openssl: {}", String::from_utf8_lossy(&made.stderr));
+        TlsFiles { ca_certificate: pem.clone(), certificate: pem, private_key: key }
+    }
+
+    #[test]
+    fn the_certificate_names_who_the_process_is() {
+        use crawler_proto::identity::Certified;
+        let dir = std::env::temp_dir().join(format!("crawler-tls-cn-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        assert_eq!(certificate(&dir, "crawler-actor-7").certified().unwrap(), Certified::Actor(7));
+        assert_eq!(certificate(&dir, "crawler-evaluator-1000").certified().unwrap(), Certified::Evaluator(1000));
+        // The one shared name of older deployments names no id.
+        let error = certificate(&dir, "crawler-actor").certified().unwrap_err().to_string();
+        assert!(error.contains("\"crawler-actor\" names no role"), "{error}");
+        let error = certificate(&dir, "crawler-actor-07").certified().unwrap_err().to_string();
+        assert!(error.contains("no valid id"), "{error}");
+        // A PEM block that is no certificate, and a file without end.
+        let mut files = certificate(&dir, "crawler-actor-1");
+        files.certificate = files.private_key.clone();
+        let error = files.certified().unwrap_err().to_string();
+        assert!(error.contains("not an X.509 certificate"), "{error}");
+        files.certificate = "/dev/zero".into();
+        let error = files.certified().unwrap_err().to_string();
+        assert!(error.contains("larger than"), "{error}");
         std::fs::remove_dir_all(&dir).unwrap();
     }
 

@@ -181,7 +181,9 @@ fn network_access(
                  pass --actors 0 and start actors with --tls-ca/--tls-cert/--tls-key"
             );
         }
-        info!("mutual TLS on; access control: actors and observers by certificate CN, everything else denied");
+        info!(
+            "mutual TLS on; access control: each certificate speaks only for the actor or evaluator id its CN names (crawler-actor-<id>, crawler-evaluator-<id>), observers read, everything else denied"
+        );
         return Ok((access_control::Identity::Certificates, tls.zenoh_settings(TlsSide::Listen)));
     }
     if service::listens_beyond_loopback(&config.learner.listen) {

@@ -6,39 +6,50 @@
 //!
 //! - actors may put transitions, stats and status of this run, subscribe to its weights,
 //!   control and insert credits, query run info and weights, and declare their liveliness
-//!   token;
+//!   token; evaluators the same but transitions and credits;
 //! - only the learner publishes weights, control and insert credits and serves the run's
 //!   queryables: no remote session may put on those keys or declare a queryable, so forged
 //!   weights, a forged stop, forged credit or a forged run info reach nobody;
 //! - no remote session may subscribe to transitions: a subscriber that never reads would
 //!   stall the actors' reliable, blocking publications (and so the learner's ingest).
 //!
-//! Who is an actor: under mutual TLS, a session whose client certificate carries
-//! [`ACTOR_COMMON_NAME`]; read-only monitors carry [`OBSERVER_COMMON_NAME`] and may subscribe
-//! to and query the run's weights, control, stats, status and liveliness, and put nothing
-//! (`deploy/make-tls.sh` issues both); any other certificate the CA signed may do nothing.
-//! Without TLS nothing tells sessions apart, so every remote session gets the actor's rights
-//! and no more: plain TCP is for loopback and trusted networks (the learner refuses a plain
-//! listener on any other address unless told `--allow-plain-remote`).
+//! Who is who: under mutual TLS, a session whose client certificate's common name is
+//! `crawler-actor-<id>` is actor `<id>` and may use that id's keys and no other's (its
+//! transitions, stats, status, token and credit), likewise `crawler-evaluator-<id>`
+//! ([`identity`] holds the names and the id ranges); read-only monitors carry
+//! [`OBSERVER_COMMON_NAME`] and may subscribe to and query the run's weights, control, stats,
+//! status and liveliness, and put nothing (`deploy/make-tls.sh` issues all three); any other
+//! certificate the CA signed may do nothing. zenoh matches exact common names (no patterns),
+//! so the policy lists one subject per certified id.
+//! Without TLS nothing tells sessions apart, so every remote session gets the rights of any
+//! actor and no more: plain TCP is for loopback and trusted networks (the learner refuses a
+//! plain listener on any other address unless told `--allow-plain-remote`).
 //!
 //! zenoh drops denied messages silently (no error reaches the sender), which is why the
 //! security tests check what actually arrives (`tests/tests/it/security.rs`).
 
+use crawler_proto::identity::{self, Certified, OBSERVER_COMMON_NAME};
 use crawler_proto::keys;
 use serde_json::{Value, json};
-
-/// The CN of every actor (and evaluator) certificate.
-pub const ACTOR_COMMON_NAME: &str = "crawler-actor";
-/// The CN of read-only monitor certificates (dashboards, the security tests' probe).
-pub const OBSERVER_COMMON_NAME: &str = "crawler-observer";
 
 /// How remote sessions are identified.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum Identity {
-    /// Mutual TLS: roles by certificate common name.
+    /// Mutual TLS: role and id by certificate common name ([`identity`]).
     Certificates,
-    /// Plain TCP: every remote session is an actor.
+    /// Plain TCP: every remote session is an actor, of any id.
     None,
+}
+
+/// A rule of the policy: `permission: allow` for `messages` on `key_exprs` in one `flow`.
+fn rule(id: &str, flow: &str, messages: &[&str], key_exprs: &[&str]) -> Value {
+    json!({
+        "id": id,
+        "permission": "allow",
+        "flows": [flow],
+        "messages": messages,
+        "key_exprs": key_exprs,
+    })
 }
 
 /// The `access_control` section of the router's zenoh config for run `run`.
@@ -46,37 +57,23 @@ pub enum Identity {
 /// Long on purpose: the policy is one JSON document (rules, subjects, policies), kept whole
 /// so that it reads as zenoh's configuration reference describes it.
 pub fn policy(run: &str, identity: Identity) -> Value {
-    let transitions = keys::all_transitions(run);
     let stats = keys::all_stats(run);
     let status = keys::all_status(run);
     let weights = keys::weights(run);
     let control = keys::control(run);
-    let credits = keys::all_credits(run);
     let info = keys::info(run);
     // Actors that were not told their run ask `crawler/*/info`; the ACL allows a query only
     // when a rule's key includes the query's, so discovery needs the wildcard form.
     let any_info = keys::info("*");
-    let actor_tokens = keys::all_alive_actors(run);
-    let evaluator_tokens = keys::all_alive_evaluators(run);
     let alive = format!("{}/{run}/alive/**", keys::ROOT);
     let whole_run = format!("{}/{run}/**", keys::ROOT);
 
-    let rule = |id: &str, flow: &str, messages: &[&str], key_exprs: &[&str]| {
-        json!({
-            "id": id,
-            "permission": "allow",
-            "flows": [flow],
-            "messages": messages,
-            "key_exprs": key_exprs,
-        })
-    };
-    let rules = vec![
-        rule("actor-publishes", "ingress", &["put"], &[&transitions, &stats, &status]),
-        rule("actor-subscribes", "ingress", &["declare_subscriber"], &[&weights, &control, &credits]),
-        rule("actor-receives", "egress", &["put"], &[&weights, &control, &credits]),
-        rule("actor-queries", "ingress", &["query"], &[&any_info, &weights]),
-        rule("actor-gets-replies", "egress", &["reply"], &[&info, &weights]),
-        rule("actor-liveliness", "ingress", &["liveliness_token"], &[&actor_tokens, &evaluator_tokens]),
+    // What every actor and evaluator does that names no id: follow the learner.
+    let mut rules = vec![
+        rule("node-subscribes", "ingress", &["declare_subscriber"], &[&weights, &control]),
+        rule("node-receives", "egress", &["put"], &[&weights, &control]),
+        rule("node-queries", "ingress", &["query"], &[&any_info, &weights]),
+        rule("node-gets-replies", "egress", &["reply"], &[&info, &weights]),
         // The learner's subscribers, queryables and liveliness token, announced to remote
         // sessions: a client's publisher sends only where it knows of a matching subscriber.
         rule(
@@ -98,38 +95,70 @@ pub fn policy(run: &str, identity: Identity) -> Value {
         rule("observer-receives", "egress", &["put", "delete", "reply"], &[&weights, &control, &stats, &status, &info]),
         rule("observer-sees-liveliness", "egress", &["liveliness_token"], &[&alive]),
     ];
-    let actor_rules = json!([
-        "actor-publishes",
-        "actor-subscribes",
-        "actor-receives",
-        "actor-queries",
-        "actor-gets-replies",
-        "actor-liveliness",
+    let follows_the_learner =
+        ["node-subscribes", "node-receives", "node-queries", "node-gets-replies", "learner-declarations-reach-remotes"];
+    let observer_rules = json!([
+        "observer-subscribes",
+        "observer-queries",
+        "observer-watches-liveliness",
+        "observer-receives",
+        "observer-sees-liveliness",
         "learner-declarations-reach-remotes",
     ]);
     let (subjects, policies) = match identity {
-        Identity::Certificates => (
-            json!([
-                { "id": "actors", "cert_common_names": [ACTOR_COMMON_NAME] },
-                { "id": "observers", "cert_common_names": [OBSERVER_COMMON_NAME] },
-            ]),
-            json!([
-                { "id": "actors", "subjects": ["actors"], "rules": actor_rules },
-                {
-                    "id": "observers",
-                    "subjects": ["observers"],
-                    "rules": [
-                        "observer-subscribes", "observer-queries", "observer-watches-liveliness",
-                        "observer-receives", "observer-sees-liveliness", "learner-declarations-reach-remotes",
-                    ],
-                },
-            ]),
-        ),
-        // A subject with no property matches every remote session.
-        Identity::None => (
-            json!([{ "id": "remote" }]),
-            json!([{ "id": "remote-sessions-are-actors", "subjects": ["remote"], "rules": actor_rules }]),
-        ),
+        Identity::Certificates => {
+            let mut subjects = vec![json!({ "id": "observers", "cert_common_names": [OBSERVER_COMMON_NAME] })];
+            let mut policies = vec![json!({ "id": "observers", "subjects": ["observers"], "rules": observer_rules })];
+            // One subject per certified id, whose rules name that id's keys only: actor 0's
+            // certificate can put, subscribe and declare tokens as actor 0 and nobody else.
+            let nodes = identity::CERTIFIED_ACTOR_IDS
+                .map(Certified::Actor)
+                .chain(identity::CERTIFIED_EVALUATOR_IDS.map(Certified::Evaluator));
+            for node in nodes {
+                let name = node.common_name();
+                let own_rules = own_keys(run, node);
+                let mut rule_ids: Vec<Value> = follows_the_learner.iter().map(|id| json!(id)).collect();
+                rule_ids.extend(own_rules.iter().map(|r| r["id"].clone()));
+                rules.extend(own_rules);
+                subjects.push(json!({ "id": name, "cert_common_names": [name] }));
+                policies.push(json!({ "id": name, "subjects": [name], "rules": rule_ids }));
+            }
+            (json!(subjects), json!(policies))
+        }
+        // A subject with no property matches every remote session; ids are told apart only by
+        // the learner, which takes each in its one canonical spelling.
+        Identity::None => {
+            rules.push(rule(
+                "any-actor-publishes",
+                "ingress",
+                &["put"],
+                &[&keys::all_transitions(run), &stats, &status],
+            ));
+            rules.push(rule(
+                "any-node-liveliness",
+                "ingress",
+                &["liveliness_token"],
+                &[&keys::all_alive_actors(run), &keys::all_alive_evaluators(run)],
+            ));
+            rules.push(rule(
+                "any-actor-subscribes-credit",
+                "ingress",
+                &["declare_subscriber"],
+                &[&keys::all_credits(run)],
+            ));
+            rules.push(rule("any-actor-receives-credit", "egress", &["put"], &[&keys::all_credits(run)]));
+            let mut rule_ids: Vec<&str> = follows_the_learner.to_vec();
+            rule_ids.extend([
+                "any-actor-publishes",
+                "any-node-liveliness",
+                "any-actor-subscribes-credit",
+                "any-actor-receives-credit",
+            ]);
+            (
+                json!([{ "id": "remote" }]),
+                json!([{ "id": "remote-sessions-are-actors", "subjects": ["remote"], "rules": rule_ids }]),
+            )
+        }
     };
     json!({
         "enabled": true,
@@ -138,6 +167,34 @@ pub fn policy(run: &str, identity: Identity) -> Value {
         "subjects": subjects,
         "policies": policies,
     })
+}
+
+/// The rules that let certified `node` use its own id's keys: an actor puts its transitions,
+/// stats and status, declares its token and takes its insert credit; an evaluator puts stats
+/// and status and declares its token. Observers have no id.
+fn own_keys(run: &str, node: Certified) -> Vec<Value> {
+    let name = node.common_name();
+    match node {
+        Certified::Actor(id) => {
+            let credit = keys::credit(run, id);
+            vec![
+                rule(
+                    &format!("{name}-publishes"),
+                    "ingress",
+                    &["put"],
+                    &[&keys::transitions(run, id), &keys::stats(run, id), &keys::status(run, id)],
+                ),
+                rule(&format!("{name}-liveliness"), "ingress", &["liveliness_token"], &[&keys::alive_actor(run, id)]),
+                rule(&format!("{name}-subscribes-credit"), "ingress", &["declare_subscriber"], &[&credit]),
+                rule(&format!("{name}-receives-credit"), "egress", &["put"], &[&credit]),
+            ]
+        }
+        Certified::Evaluator(id) => vec![
+            rule(&format!("{name}-publishes"), "ingress", &["put"], &[&keys::stats(run, id), &keys::status(run, id)]),
+            rule(&format!("{name}-liveliness"), "ingress", &["liveliness_token"], &[&keys::alive_evaluator(run, id)]),
+        ],
+        Certified::Observer => Vec::new(),
+    }
 }
 
 #[cfg(test)]
@@ -184,15 +241,18 @@ mod tests {
         }
     }
 
+    /// Every subject of a policy, by id.
+    fn subjects(policy: &Value) -> Vec<String> {
+        policy["subjects"].as_array().unwrap().iter().map(|s| s["id"].as_str().unwrap().to_string()).collect()
+    }
+
     #[test]
     fn no_remote_session_may_put_weights_or_control_or_serve_queries() {
-        for (identity, subjects) in
-            [(Identity::Certificates, &["actors", "observers"][..]), (Identity::None, &["remote"])]
-        {
+        for identity in [Identity::Certificates, Identity::None] {
             let policy = policy("r", identity);
             assert_eq!(policy["default_permission"], "deny");
-            for subject in subjects {
-                let rules = rules_for(&policy, subject);
+            for subject in subjects(&policy) {
+                let rules = rules_for(&policy, &subject);
                 for key in [
                     keys::weights("r"),
                     keys::control("r"),
@@ -210,29 +270,73 @@ mod tests {
         }
     }
 
-    #[test]
-    fn actors_may_do_what_the_actor_loop_does() {
-        let certified = rules_for(&policy("r", Identity::Certificates), "actors");
-        let plain = rules_for(&policy("r", Identity::None), "remote");
-        for rules in [certified, plain] {
-            assert!(allows(&rules, "ingress", "put", &keys::transitions("r", 3)));
-            assert!(allows(&rules, "ingress", "put", &keys::stats("r", 3)));
-            assert!(allows(&rules, "ingress", "put", &keys::status("r", 1000)));
-            assert!(allows(&rules, "ingress", "declare_subscriber", &keys::weights("r")));
-            assert!(allows(&rules, "ingress", "declare_subscriber", &keys::control("r")));
-            assert!(allows(&rules, "egress", "put", &keys::weights("r")));
-            assert!(allows(&rules, "ingress", "declare_subscriber", &keys::credit("r", 3)));
-            assert!(allows(&rules, "egress", "put", &keys::credit("r", 3)));
-            assert!(allows(&rules, "ingress", "query", &keys::info("*")));
-            assert!(allows(&rules, "ingress", "query", &keys::info("r")));
-            assert!(allows(&rules, "ingress", "query", &keys::weights("r")));
-            assert!(allows(&rules, "egress", "reply", &keys::info("r")));
-            assert!(allows(&rules, "ingress", "liveliness_token", &keys::alive_actor("r", 7)));
-            assert!(allows(&rules, "ingress", "liveliness_token", &keys::alive_evaluator("r", 1000)));
-            // Not another run's topics, and not the learner's token.
-            assert!(!allows(&rules, "ingress", "put", &keys::transitions("other", 3)));
-            assert!(!allows(&rules, "ingress", "liveliness_token", &keys::alive_learner("r")));
+    /// What the actor loop of actor `id` does, and evaluator `id`'s.
+    fn assert_may_act_as(rules: &[Value], id: u32, evaluator: bool) {
+        assert!(allows(rules, "ingress", "put", &keys::stats("r", id)));
+        assert!(allows(rules, "ingress", "put", &keys::status("r", id)));
+        assert!(allows(rules, "ingress", "declare_subscriber", &keys::weights("r")));
+        assert!(allows(rules, "ingress", "declare_subscriber", &keys::control("r")));
+        assert!(allows(rules, "egress", "put", &keys::weights("r")));
+        assert!(allows(rules, "ingress", "query", &keys::info("*")));
+        assert!(allows(rules, "ingress", "query", &keys::info("r")));
+        assert!(allows(rules, "ingress", "query", &keys::weights("r")));
+        assert!(allows(rules, "egress", "reply", &keys::info("r")));
+        if evaluator {
+            assert!(allows(rules, "ingress", "liveliness_token", &keys::alive_evaluator("r", id)));
+        } else {
+            assert!(allows(rules, "ingress", "put", &keys::transitions("r", id)));
+            assert!(allows(rules, "ingress", "declare_subscriber", &keys::credit("r", id)));
+            assert!(allows(rules, "egress", "put", &keys::credit("r", id)));
+            assert!(allows(rules, "ingress", "liveliness_token", &keys::alive_actor("r", id)));
         }
+        // Not another run's topics, and not the learner's token.
+        assert!(!allows(rules, "ingress", "put", &keys::transitions("other", id)));
+        assert!(!allows(rules, "ingress", "liveliness_token", &keys::alive_learner("r")));
+    }
+
+    #[test]
+    fn any_plain_session_may_act_as_any_actor() {
+        let plain = rules_for(&policy("r", Identity::None), "remote");
+        for (id, evaluator) in [(0, false), (3, false), (7_000, false), (1000, true)] {
+            assert_may_act_as(&plain, id, evaluator);
+        }
+    }
+
+    #[test]
+    fn a_certificate_acts_as_its_own_id_and_no_other() {
+        let policy = policy("r", Identity::Certificates);
+        let actor = |id| rules_for(&policy, &Certified::Actor(id).common_name());
+        let evaluator = |id| rules_for(&policy, &Certified::Evaluator(id).common_name());
+        for id in [0, 1, 999] {
+            assert_may_act_as(&actor(id), id, false);
+        }
+        for id in [1000, 1999] {
+            assert_may_act_as(&evaluator(id), id, true);
+        }
+        // Actor 0's certificate, as actor 1 (or as the evaluator id space): nothing.
+        let zero = actor(0);
+        for other in [1, 1000] {
+            for key in [keys::transitions("r", other), keys::stats("r", other), keys::status("r", other)] {
+                assert!(!allows(&zero, "ingress", "put", &key), "actor 0 may put {key}");
+            }
+            assert!(!allows(&zero, "ingress", "liveliness_token", &keys::alive_actor("r", other)));
+            assert!(!allows(&zero, "ingress", "liveliness_token", &keys::alive_evaluator("r", other)));
+            assert!(!allows(&zero, "ingress", "declare_subscriber", &keys::credit("r", other)));
+            assert!(!allows(&zero, "egress", "put", &keys::credit("r", other)));
+        }
+        // Its own id in another spelling, and wildcards over ids, are not its id.
+        for key in ["crawler/r/transitions/00", "crawler/r/transitions/*", "crawler/r/status/**"] {
+            assert!(!allows(&zero, "ingress", "put", key), "actor 0 may put {key}");
+        }
+        assert!(!allows(&zero, "ingress", "liveliness_token", "crawler/r/alive/actor/*"));
+        assert!(!allows(&zero, "ingress", "declare_subscriber", &keys::all_credits("r")));
+        // An evaluator takes no transitions and no credit, even its own id's.
+        let evaluator = evaluator(1000);
+        assert!(!allows(&evaluator, "ingress", "put", &keys::transitions("r", 1000)));
+        assert!(!allows(&evaluator, "ingress", "declare_subscriber", &keys::credit("r", 1000)));
+        // Every certified id has its own subject, and nothing else but the observers does.
+        let expected = identity::CERTIFIED_ACTOR_IDS.len() + identity::CERTIFIED_EVALUATOR_IDS.len() + 1;
+        assert_eq!(subjects(&policy).len(), expected);
     }
 
     #[test]

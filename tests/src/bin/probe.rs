@@ -1,5 +1,5 @@
 //! `probe`: a zenoh client for the security tests, connecting with whatever certificate it is
-//! given. Two modes:
+//! given. Its modes:
 //!
 //! - `listen KEY`: subscribes to KEY and prints one JSON line per sample that arrives on stdout
 //!   (`{"key": …, "bytes": …, "weights_version": …, "command": …}`), flushed at once, until
@@ -9,6 +9,8 @@
 //!   key with version [`FORGED_VERSION`], puts a Stop on the control key and a run info on the
 //!   info key (all outside an actor's rights), and a valid transition batch on its own
 //!   transitions key (inside them). At the end it prints what it sent as JSON.
+//! - `query KEY…`: asks each key once and prints `{"key": …, "replies": n, "forged": m}`, where
+//!   `forged` counts replies carrying the marker the `as-another` attack serves.
 //! - `attack KIND --run RUN --id ID --seconds S`: one of the attacks of an outsider (or of an
 //!   insider with an actor certificate) on a running learner, for the attack suite in
 //!   `tests/tests/it/security.rs`; see [`Attack`]. Prints what it did as JSON on stdout.
@@ -45,6 +47,11 @@ enum Mode {
         #[arg(required = true)]
         keys: Vec<String>,
     },
+    Query {
+        /// Keys to query, once each.
+        #[arg(required = true)]
+        keys: Vec<String>,
+    },
     Forge {
         #[arg(long)]
         run: String,
@@ -67,6 +74,9 @@ enum Mode {
         /// How many tokens `squat` declares.
         #[arg(long, default_value_t = 62)]
         count: u32,
+        /// The actor `as-another` speaks for.
+        #[arg(long, default_value_t = 1)]
+        victim: u32,
     },
 }
 
@@ -105,7 +115,17 @@ enum Attack {
     /// Valid episode statistics and status reports from its own live id, as fast as the link
     /// takes them, for `--seconds`: more than its share of the metrics and status.
     Hog,
+    /// Everything actor `--victim` does, from a session that is actor `--id`: its liveliness
+    /// token, batches (of 3e38 observations) and status reports (ε NaN) under its keys, a
+    /// subscription to its insert credit, and queryables on the run info and weights that
+    /// answer [`FORGED_REPLY`]; beside them the same as itself (valid batches, its credit), the
+    /// positive control. Reports the credits each subscription got, then holds it all for
+    /// `--seconds`.
+    AsAnother,
 }
+
+/// What the `as-another` attack's queryables answer.
+const FORGED_REPLY: &[u8] = b"forged reply";
 
 fn main() -> anyhow::Result<()> {
     crawler_cli::init_logging();
@@ -131,8 +151,10 @@ async fn run(args: Args) -> anyhow::Result<()> {
     match args.mode {
         Mode::Listen { keys } => listen(&session, &keys).await,
         Mode::Forge { run, id, seconds } => forge(&session, &run, id, Duration::from_secs_f64(seconds)).await,
-        Mode::Attack { kind, run, id, seconds, count } => {
-            let report = attack(&session, kind, &run, id, count, Duration::from_secs_f64(seconds)).await?;
+        Mode::Query { keys } => query(&session, &keys).await,
+        Mode::Attack { kind, run, id, seconds, count, victim } => {
+            let target = Target { id, count, victim };
+            let report = attack(&session, kind, &run, target, Duration::from_secs_f64(seconds)).await?;
             // Let the last messages leave before closing.
             tokio::time::sleep(Duration::from_millis(500)).await;
             session.close().await.map_err(|e| anyhow::anyhow!("closing: {e}"))?;
@@ -183,14 +205,22 @@ fn status_report(run: &str, id: u32, epsilon: f64) -> Vec<u8> {
     .encode_to_vec()
 }
 
+/// Whom an attack uses: its own id, how many made-up ids, whose id it takes.
+#[derive(Debug, Clone, Copy)]
+struct Target {
+    id: u32,
+    count: u32,
+    victim: u32,
+}
+
 async fn attack(
     session: &zenoh::Session,
     kind: Attack,
     run: &str,
-    id: u32,
-    count: u32,
+    target: Target,
     hold: Duration,
 ) -> anyhow::Result<serde_json::Value> {
+    let Target { id, count, victim } = target;
     let mut sent = 0u64;
     match kind {
         Attack::ForgedWeights => {
@@ -416,8 +446,79 @@ async fn attack(
                 sent += 3;
             }
         }
+        Attack::AsAnother => {
+            let _own_token =
+                session.liveliness().declare_token(keys::alive_actor(run, id)).await.map_err(err("token"))?;
+            let _victim_token =
+                session.liveliness().declare_token(keys::alive_actor(run, victim)).await.map_err(err("token"))?;
+            let mut credits = Vec::new();
+            let mut subscribers = Vec::new();
+            for whose in [id, victim] {
+                let counter = std::sync::Arc::new(std::sync::atomic::AtomicU64::new(0));
+                let seen = std::sync::Arc::clone(&counter);
+                let subscriber = session
+                    .declare_subscriber(keys::credit(run, whose))
+                    .callback(move |_| {
+                        seen.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+                    })
+                    .await
+                    .map_err(err("subscribing to credit"))?;
+                credits.push(counter);
+                subscribers.push(subscriber);
+            }
+            let mut queryables = Vec::new();
+            for key in [keys::info(run), keys::weights(run)] {
+                let queryable = session
+                    .declare_queryable(&key)
+                    .callback(|query| {
+                        let _ = zenoh::Wait::wait(query.reply(query.key_expr().clone(), FORGED_REPLY));
+                    })
+                    .await
+                    .map_err(err("declaring a queryable"))?;
+                queryables.push(queryable);
+            }
+            tokio::time::sleep(Duration::from_millis(500)).await;
+            for sequence in 1..=10 {
+                let mut poisoned = valid_batch(run, victim, 1_000_000 + sequence, 8);
+                poisoned.incarnation = 99;
+                poisoned.observations.fill(3e38);
+                put(session, &keys::transitions(run, victim), poisoned.encode_to_vec()).await?;
+                put(session, &keys::status(run, victim), status_report(run, victim, f64::NAN)).await?;
+                // Its own batches, one per introduction interval, so the learner takes them.
+                put(session, &keys::transitions(run, id), valid_batch(run, id, sequence, 8).encode_to_vec()).await?;
+                sent += 3;
+                tokio::time::sleep(Duration::from_millis(300)).await;
+            }
+            tokio::time::sleep(Duration::from_secs(1)).await;
+            let [own, others] = [0, 1].map(|i| credits[i].load(std::sync::atomic::Ordering::Relaxed));
+            let report = serde_json::json!({
+                "attack": format!("{kind:?}"), "sent": sent, "own_credits": own, "victim_credits": others, "holding": true,
+            });
+            let mut stdout = std::io::stdout().lock();
+            writeln!(stdout, "{report}").context("writing stdout")?;
+            stdout.flush().context("flushing stdout")?;
+            drop(stdout);
+            tokio::time::sleep(hold).await;
+            drop((queryables, subscribers));
+        }
     }
     Ok(serde_json::json!({ "attack": format!("{kind:?}"), "sent": sent }))
+}
+
+async fn query(session: &zenoh::Session, keys: &[String]) -> anyhow::Result<()> {
+    for key in keys {
+        let replies = session.get(key).timeout(Duration::from_secs(3)).await.map_err(err("query"))?;
+        let (mut count, mut forged) = (0u64, 0u64);
+        while let Ok(reply) = replies.recv_async().await {
+            if let Ok(sample) = reply.result() {
+                count += 1;
+                forged += u64::from(sample.payload().to_bytes().as_ref() == FORGED_REPLY);
+            }
+        }
+        let line = serde_json::json!({ "key": key, "replies": count, "forged": forged });
+        writeln!(std::io::stdout(), "{line}").context("writing stdout")?;
+    }
+    Ok(())
 }
 
 /// Reports what an attack that holds something has sent, at once (the test acts while it

@@ -318,6 +318,19 @@ fn actors_of_another_compose_project_join_over_mutual_tls_and_nothing_else_does(
         vec![("CRAWLER_LEARNER", format!("host.docker.internal:{port}")), ("CRAWLER_TLS", tls.display().to_string())],
     );
     actors.command(&["up", "-d"]);
+    // A second actor on that machine: its own certificate, in a project of its own, as the
+    // file's header says (a certificate names one actor).
+    let second = Compose::new(
+        "deploy/compose.actors.yml",
+        format!("crawlertls{pid}actors1"),
+        &run,
+        vec![
+            ("CRAWLER_LEARNER", format!("host.docker.internal:{port}")),
+            ("CRAWLER_TLS", tls.display().to_string()),
+            ("CRAWLER_TLS_NAME", "actor-1".into()),
+        ],
+    );
+    second.command(&["up", "-d", "actor"]);
     let actor_networks = networks_of(&actors.container("actor", 1));
     let learner_networks = networks_of(&learner_container);
     assert!(

@@ -7,7 +7,7 @@
 #![allow(clippy::unwrap_used)]
 
 use std::io::{BufRead, BufReader};
-use std::path::Path;
+use std::path::{Path, PathBuf};
 use std::process::{Child, Command, Stdio};
 use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
@@ -129,7 +129,7 @@ fn only_actors_with_a_certificate_from_the_runs_ca_connect() {
 
     let genuine = start_actor(port, 0, run, tls_flags(&tls, &tls, "actor-0"), dir.path());
     // It trusts the learner (right CA) but presents a certificate of another CA.
-    let mut wrong_ca = start_actor(port, 5, run, tls_flags(&tls, &rogue, "actor-0"), dir.path());
+    let mut wrong_ca = start_actor(port, 1, run, tls_flags(&tls, &rogue, "actor-1"), dir.path());
     // It trusts the learner but presents no certificate at all.
     let no_certificate_setting =
         format!("transport/link/tls/root_ca_certificate={:?}", tls.join("ca.pem").display().to_string());
@@ -142,7 +142,7 @@ fn only_actors_with_a_certificate_from_the_runs_ca_connect() {
     std::thread::sleep(Duration::from_secs(6));
     let status = learner.status().unwrap();
     assert_eq!(status["connected_actors"], serde_json::json!([0]), "{status:#}");
-    for id in ["5", "6"] {
+    for id in ["1", "6"] {
         assert!(status["actors"].get(id).is_none(), "actor {id} reached the learner: {status:#}");
     }
     for (name, actor) in [("wrong CA", &mut wrong_ca), ("no certificate", &mut no_certificate)] {
@@ -223,28 +223,128 @@ fn an_authenticated_actor_cannot_forge_weights_or_put_outside_its_rights() {
     assert!(status["actors"].get("2").is_none(), "the observer's own puts arrived: {status:#}");
 }
 
+/// Actor 0's certificate, used as actor 1 while the genuine actor 1 trains: its token, puts,
+/// credit subscription and queryables under actor 1's keys reach nobody, while the same
+/// session's own actor-0 traffic gets through (the positive control).
+#[test]
+fn a_certificate_cannot_put_declare_or_reply_as_another_actor() {
+    let dir = tempfile::tempdir().unwrap();
+    let tls = make_tls(&dir.path().join("tls"), "localhost", 2);
+    let runs = dir.path().join("runs");
+    let port = free_port();
+    let run = "tls-as-another";
+    let mut learner = start_learner(port, &runs, run, &tls);
+    let victim = start_actor(port, 1, run, tls_flags(&tls, &tls, "actor-1"), dir.path());
+    learner.wait_for(Duration::from_secs(120), "actor 1 training", |s| {
+        u64_at(s, "/actors/1/transitions") > 0 && u64_at(s, "/updates") > 20
+    });
+
+    let mut attacker = Command::new(binary("probe"))
+        .args(["--connect", &format!("tls/localhost:{port}")])
+        .args(tls_flags(&tls, &tls, "actor-0"))
+        .args(["attack", "as-another", "--run", run, "--id", "0", "--victim", "1", "--seconds", "40"])
+        .stdout(Stdio::piped())
+        .stderr(Stdio::inherit())
+        .spawn()
+        .unwrap();
+    let mut first = String::new();
+    BufReader::new(attacker.stdout.take().unwrap()).read_line(&mut first).unwrap();
+    let report: serde_json::Value = serde_json::from_str(&first).unwrap();
+    eprintln!("attack as-another: {report}");
+    assert!(report["sent"].as_u64().unwrap() >= 30, "{report}");
+
+    // Put: the poisoned batches and NaN statuses under actor 1's keys would each be counted
+    // had one arrived; actor 0's own batches arrived.
+    let status =
+        learner.wait_for(Duration::from_secs(30), "actor 0's own batches", |s| u64_at(s, "/actors/0/batches") >= 1);
+    for kind in ["non_finite", "out_of_range", "not_live", "key_mismatch", "incarnation_busy", "retired_incarnation"] {
+        assert_eq!(
+            rejected(&status, kind),
+            0,
+            "a message under actor 1's keys reached the learner ({kind}): {status:#}"
+        );
+    }
+    // Subscribe: actor 1's insert credit never reached the attacker; its own did.
+    assert_eq!(report["victim_credits"], 0, "{report}");
+    assert!(report["own_credits"].as_u64().unwrap() >= 1, "no credit for the attacker's own id: {report}");
+    // Reply: the attacker's queryables answer nobody; the learner's do.
+    let asked = Command::new(binary("probe"))
+        .args(["--connect", &format!("tls/localhost:{port}")])
+        .args(tls_flags(&tls, &tls, "actor-1"))
+        .args(["query", &format!("crawler/{run}/info"), &format!("crawler/{run}/weights")])
+        .stderr(Stdio::inherit())
+        .output()
+        .unwrap();
+    assert!(asked.status.success());
+    for line in String::from_utf8_lossy(&asked.stdout).lines() {
+        let answer: serde_json::Value = serde_json::from_str(line).unwrap();
+        assert_eq!(answer["forged"], 0, "the attacker's queryable answered: {answer}");
+        assert!(answer["replies"].as_u64().unwrap() >= 1, "the learner did not answer: {answer}");
+    }
+    // Declare: with the genuine actor 1 gone, the attacker's token for actor 1 (still held)
+    // keeps nothing on the learner's books.
+    drop(victim);
+    let gone = learner.wait_for(Duration::from_secs(30), "actor 1 off the books", |s| {
+        s["connected_actors"].as_array().is_some_and(|c| !c.contains(&1.into()))
+    });
+    assert!(gone["connected_actors"].as_array().unwrap().contains(&0.into()), "{gone:#}");
+    let _ = attacker.kill();
+    let _ = attacker.wait();
+}
+
 // ---------------------------------------------------------------------------------------------
-// The attack suite: every attack of issue 14, by a real process, while a learner and two
-// actors train; once over plain TCP on loopback (any session is an actor there) and once
-// over mutual TLS with an attacker holding a valid actor certificate.
+// The attack suite: every attack of docs/SECURITY.md's table, by a real process, while a
+// learner and two actors train; once over plain TCP on loopback (any session is an actor of
+// any id there) and once over mutual TLS with an attacker holding a valid actor certificate
+// (then the router denies whatever it does under another id, and the suite checks that).
 
 /// How the attacker and the extra actors connect.
 struct Link {
     endpoint: String,
-    /// TLS flags of an actor certificate (empty over plain TCP).
-    actor_tls: Vec<String>,
+    /// Over mutual TLS, the directory of `make-tls.sh`'s material; over plain TCP none.
+    tls: Option<PathBuf>,
 }
 
+/// The certificate the attacker holds over mutual TLS: a genuine actor's, gone bad.
+const ATTACKER_CERTIFICATE_ID: u32 = 2;
+/// Actors that join during the suite: under a forged run info, with `--id auto`, and after
+/// squatters (each its own certificate over mutual TLS).
+const JOINER_ID: u32 = 3;
+const AUTO_CERTIFICATE_ID: u32 = 4;
+const LATE_ID: u32 = 5;
+
 impl Link {
-    /// `probe attack KIND` over this link.
+    /// Whether sessions are told apart by certificate: then the router denies everything
+    /// the attacker does under another id before the learner sees it.
+    fn certified(&self) -> bool {
+        self.tls.is_some()
+    }
+
+    /// The attacker's own id: the one its certificate names, or any id over plain TCP.
+    fn attacker_id(&self) -> u32 {
+        if self.certified() { ATTACKER_CERTIFICATE_ID } else { 900 }
+    }
+
+    /// TLS flags of actor `id`'s certificate (none over plain TCP).
+    fn actor_flags(&self, id: u32) -> Vec<String> {
+        self.tls.as_ref().map(|tls| tls_flags(tls, tls, &format!("actor-{id}"))).unwrap_or_default()
+    }
+
+    /// `probe attack KIND` over this link, as the attacker.
     fn probe_attack(&self, run: &str, kind: &str, seconds: f64) -> Command {
         let mut command = Command::new(binary("probe"));
         command
             .args(["--connect", &self.endpoint])
-            .args(&self.actor_tls)
+            .args(self.actor_flags(ATTACKER_CERTIFICATE_ID))
             .args(["attack", kind, "--run", run, "--seconds", &seconds.to_string()])
+            .args(["--id", &self.attacker_id().to_string()])
             .stderr(Stdio::inherit());
         command
+    }
+
+    /// `actor --id ID` (or `auto`) over this link, with its own certificate over TLS.
+    fn start_actor(&self, id: &str, certificate_id: u32, run: &str, log_dir: &Path) -> Actor {
+        start_actor_at(&self.endpoint, id, run, &self.actor_flags(certificate_id), log_dir)
     }
 }
 
@@ -316,15 +416,27 @@ fn attack_suite(learner: &mut Learner, link: &Link, run: &str, log_dir: &Path) {
     eprintln!("rejected after the first attacks: {}", status["rejected"]);
     // ε NaN and ∞ (non_finite), 7 (out_of_range); 30 batches of 3e38 (out_of_range).
     assert!(rejected(&status, "non_finite") >= 10 && rejected(&status, "out_of_range") >= 35, "{status:#}");
-    // 20 messages under the attacker's own key in actor 0's name. Its 10 batches under
-    // actor 0's own key, from an incarnation of its own, take nothing over while the
-    // genuine actor 0 sends (incarnation_busy, or over_credit once the one introduction per
-    // 250 ms is used).
+    // 20 messages under the attacker's own key in actor 0's name.
     assert!(rejected(&status, "key_mismatch") >= 20, "{status:#}");
+    // Its 10 batches under actor 0's own key: over plain TCP they reach the learner and, from
+    // an incarnation of their own, take nothing over while the genuine actor 0 sends
+    // (incarnation_busy, or over_credit once the one introduction per 250 ms is used); under
+    // mutual TLS the router denies them (the attacker's certificate names another id).
     let taken_over = rejected(&status, "incarnation_busy") + rejected(&status, "over_credit");
-    assert!(taken_over >= 10, "{status:#}");
-    // The flood: ids without a token, env ids beyond the run's crawlers per actor.
-    assert!(rejected(&status, "not_live") >= 1000 && rejected(&status, "env_id") >= 1000, "{status:#}");
+    if link.certified() {
+        assert_eq!(taken_over, 0, "batches under actor 0's key reached the learner: {status:#}");
+    } else {
+        assert!(taken_over >= 10, "{status:#}");
+    }
+    // The flood: env ids beyond the run's crawlers per actor, under the attacker's own id;
+    // 100 000 status reports and 10 000 batches under ids without a token (not_live over
+    // plain TCP, denied by the router under mutual TLS).
+    assert!(rejected(&status, "env_id") >= 1000, "{status:#}");
+    if link.certified() {
+        assert!(rejected(&status, "not_live") < 100, "other ids' messages reached the learner: {status:#}");
+    } else {
+        assert!(rejected(&status, "not_live") >= 1000, "{status:#}");
+    }
     assert!(status["actors"].as_object().unwrap().keys().all(|id| id.parse::<u32>().unwrap() < 1000), "{status:#}");
 
     // A subscriber to transitions that never reads: denied, so ingest keeps flowing.
@@ -345,23 +457,27 @@ fn attack_suite(learner: &mut Learner, link: &Link, run: &str, log_dir: &Path) {
     // and trains (with the forged 3 action levels it could not use the learner's weights).
     let (mut forged_info, _) = attack_in_background(link, run, "forged-info", 15.0);
     std::thread::sleep(Duration::from_secs(2));
-    let mut joiner = start_actor_at(&link.endpoint, "5", run, &link.actor_tls, log_dir);
+    let mut joiner = link.start_actor(&JOINER_ID.to_string(), JOINER_ID, run, log_dir);
     learner.wait_for(Duration::from_secs(60), "the actor that joined under a forged info to train", |s| {
-        u64_at(s, "/actors/5/transitions") > 0
+        u64_at(s, &format!("/actors/{JOINER_ID}/transitions")) > 0
     });
     assert!(joiner.is_running(), "{}", joiner.log_text());
     assert!(forged_info.wait().unwrap().success());
     drop(joiner);
 
     // 50 made-up liveliness tokens and 3 000 `assign` queries, then a genuine `--id auto`
-    // actor: it gets a small id (pending reservations are capped at 16) and trains.
+    // actor: it gets a small id (pending reservations are capped at 16; under mutual TLS the
+    // tokens are denied and the id is the one its certificate names) and trains.
     let (mut tokens, lines) = attack_in_background(link, run, "tokens", 30.0);
     let first = lines.recv_timeout(Duration::from_secs(120)).unwrap();
     eprintln!("attack tokens: {first}");
-    let mut auto = start_actor_at(&link.endpoint, "auto", run, &link.actor_tls, log_dir);
+    let mut auto = link.start_actor("auto", AUTO_CERTIFICATE_ID, run, log_dir);
     let joined = auto.wait_for_log(Duration::from_secs(60), "joined run");
     let id = crawler_tests::log_field(&joined, "id").unwrap();
     assert!(id < 2 + 16 + 1, "the auto actor got id {id}: {joined}");
+    if link.certified() {
+        assert_eq!(id, u64::from(AUTO_CERTIFICATE_ID), "the auto actor did not take its certificate's id: {joined}");
+    }
     let trained = learner.wait_for(Duration::from_secs(60), "the auto actor to train", |s| {
         u64_at(s, &format!("/actors/{id}/transitions")) > 0
     });
@@ -373,12 +489,20 @@ fn attack_suite(learner: &mut Learner, link: &Link, run: &str, log_dir: &Path) {
     let _ = tokens.wait();
 
     // Tokens under other spellings of the genuine actors' ids (`00`, `+1`), declared and
-    // dropped: refused by name, and both genuine actors stay on the books.
+    // dropped: refused by name (over plain TCP; under mutual TLS the router denies them, as
+    // no certificate names those keys), and both genuine actors stay on the books.
     let before = learner.status().unwrap();
     let since = u64_at(&before, "/weights_version");
     attack(link, run, "alias-tokens", 0.0);
-    let after_aliases = learner
-        .wait_for(Duration::from_secs(30), "the aliased tokens counted", |s| rejected(s, "non_canonical_id") >= 10);
+    let after_aliases = if link.certified() {
+        std::thread::sleep(Duration::from_secs(2));
+        let status = learner.status().unwrap();
+        assert_eq!(rejected(&status, "non_canonical_id"), 0, "aliased tokens reached the learner: {status:#}");
+        status
+    } else {
+        learner
+            .wait_for(Duration::from_secs(30), "the aliased tokens counted", |s| rejected(s, "non_canonical_id") >= 10)
+    };
     std::thread::sleep(Duration::from_secs(2));
     let since_aliases = learner.wait_for(Duration::from_secs(30), "the genuine actors after the aliases", |s| {
         actors_follow_the_learner(s, since)
@@ -396,18 +520,30 @@ fn attack_suite(learner: &mut Learner, link: &Link, run: &str, log_dir: &Path) {
     });
 
     // Squatters take every free slot while a new actor joins; it waits, and takes a slot as
-    // soon as they leave, without a restart.
+    // soon as they leave, without a restart. Under mutual TLS the squatters' tokens are
+    // denied (no certificate names them), and the late actor trains at once.
     let (mut squat, lines) = attack_in_background(link, run, "squat", 12.0);
     let first = lines.recv_timeout(Duration::from_secs(60)).unwrap();
     eprintln!("attack squat: {first}");
-    let mut late = start_actor_at(&link.endpoint, "6", run, &link.actor_tls, log_dir);
-    let waiting =
-        learner.wait_for(Duration::from_secs(30), "the late actor turned away", |s| u64_at(s, "/ignored_tokens") >= 1);
-    assert!(u64_at(&waiting, "/actors/6/transitions") == 0, "{waiting:#}");
-    assert!(squat.wait().unwrap().success());
-    learner.wait_for(Duration::from_secs(60), "the late actor to take a freed slot and train", |s| {
-        u64_at(s, "/actors/6/transitions") > 0
-    });
+    let ignored_before = u64_at(&learner.status().unwrap(), "/ignored_tokens");
+    let mut late = link.start_actor(&LATE_ID.to_string(), LATE_ID, run, log_dir);
+    let late_transitions = format!("/actors/{LATE_ID}/transitions");
+    if link.certified() {
+        let trained = learner.wait_for(Duration::from_secs(60), "the late actor to train beside the squatters", |s| {
+            u64_at(s, &late_transitions) > 0
+        });
+        assert_eq!(u64_at(&trained, "/ignored_tokens"), ignored_before, "squatters' tokens arrived: {trained:#}");
+        assert!(squat.wait().unwrap().success());
+    } else {
+        let waiting = learner.wait_for(Duration::from_secs(30), "the late actor turned away", |s| {
+            u64_at(s, "/ignored_tokens") > ignored_before
+        });
+        assert!(u64_at(&waiting, &late_transitions) == 0, "{waiting:#}");
+        assert!(squat.wait().unwrap().success());
+        learner.wait_for(Duration::from_secs(60), "the late actor to take a freed slot and train", |s| {
+            u64_at(s, &late_transitions) > 0
+        });
+    }
     assert!(late.is_running(), "{}", late.log_text());
     drop(late);
 
@@ -416,9 +552,10 @@ fn attack_suite(learner: &mut Learner, link: &Link, run: &str, log_dir: &Path) {
     // name, and the genuine actors' data and reports go on as before.
     let before = learner.status().unwrap();
     let (mut hog, lines) = attack_in_background(link, run, "hog", 15.0);
+    let hog_name = format!("/over_share/actor-{}", link.attacker_id());
     let during = learner.wait_for(Duration::from_secs(30), "the hog's excess counted under its name", |s| {
-        u64_at(s, "/over_share/actor-900/statuses") >= 100
-            && u64_at(s, "/over_share/actor-900/episodes") >= 100
+        u64_at(s, &format!("{hog_name}/statuses")) >= 100
+            && u64_at(s, &format!("{hog_name}/episodes")) >= 100
             && (0..2).all(|id| {
                 let pointer = format!("/actors/{id}/transitions");
                 u64_at(s, &pointer) > u64_at(&before, &pointer)
@@ -473,14 +610,14 @@ fn attacks_over_plain_tcp_leave_training_intact() {
     let port = free_port();
     let run = "attacked-tcp";
     let mut learner = Learner::builder(&runs, run).port(port).config(SMOKE).actors(2).start();
-    let link = Link { endpoint: format!("tcp/127.0.0.1:{port}"), actor_tls: Vec::new() };
+    let link = Link { endpoint: format!("tcp/127.0.0.1:{port}"), tls: None };
     attack_suite(&mut learner, &link, run, dir.path());
 }
 
 #[test]
 fn attacks_by_a_certified_actor_leave_training_intact() {
     let dir = tempfile::tempdir().unwrap();
-    let tls = make_tls(&dir.path().join("tls"), "localhost", 3);
+    let tls = make_tls(&dir.path().join("tls"), "localhost", LATE_ID + 1);
     let runs = dir.path().join("runs");
     let port = free_port();
     let run = "attacked-tls";
@@ -488,7 +625,7 @@ fn attacks_by_a_certified_actor_leave_training_intact() {
     let _genuine: Vec<Actor> = (0..2)
         .map(|id| start_actor(port, id, run, tls_flags(&tls, &tls, &format!("actor-{id}")), dir.path()))
         .collect();
-    let link = Link { endpoint: format!("tls/localhost:{port}"), actor_tls: tls_flags(&tls, &tls, "actor-2") };
+    let link = Link { endpoint: format!("tls/localhost:{port}"), tls: Some(tls) };
     attack_suite(&mut learner, &link, run, dir.path());
 }
 
