@@ -57,7 +57,7 @@ fn flat_adam_step_us(budget: Duration) -> f64 {
     let mut params = dqn.online.flat().copy();
     let grad = Gradient::from_parts(vec![Tensor::randn([params.numel() as i64], (Kind::Float, tch::Device::Cpu))]);
     let mut adam = FlatAdam::new(params.numel(), AdamConfig::default());
-    1e6 / rate(budget, || adam.step(&mut params, &grad, 1.0))
+    1e6 / rate(budget, || adam.step(&mut params, &grad, 1e-3, 1.0))
 }
 
 fn main() {

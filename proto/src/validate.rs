@@ -152,8 +152,9 @@ fn within(field: &'static str, values: &[f32], low: f32, high: f32) -> Result<()
 }
 
 /// Value i inside range `i mod ranges.len()` (one range per observation index); no ranges:
-/// no bound.
-fn within_ranges(field: &'static str, values: &[f32], ranges: &[[f32; 2]]) -> Result<(), ProtoError> {
+/// no bound. Public so that data read back from a file (a replay snapshot) is held to the
+/// same bounds as data from the wire.
+pub fn within_ranges(field: &'static str, values: &[f32], ranges: &[[f32; 2]]) -> Result<(), ProtoError> {
     if ranges.is_empty() {
         return Ok(());
     }

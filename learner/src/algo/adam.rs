@@ -15,10 +15,11 @@ use tch::Tensor;
 use super::network::Gradient;
 use super::tensor_memory;
 
-/// Adam's settings.
+/// Adam's fixed settings. The learning rate is not one of them: it changes under
+/// `dqn.lr_decay`, and its one owner is `DqnConfig::learning_rate`, which hands it to every
+/// [`FlatAdam::step`].
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct AdamConfig {
-    pub lr: f64,
     pub beta1: f64,
     pub beta2: f64,
     pub eps: f64,
@@ -26,7 +27,7 @@ pub struct AdamConfig {
 
 impl Default for AdamConfig {
     fn default() -> Self {
-        Self { lr: 1e-3, beta1: 0.9, beta2: 0.999, eps: 1e-8 }
+        Self { beta1: 0.9, beta2: 0.999, eps: 1e-8 }
     }
 }
 
@@ -48,14 +49,14 @@ impl FlatAdam {
         Self { config, exp_avg: zeros(), exp_avg_sq: zeros(), step: 0 }
     }
 
-    /// Applies one step to `params` (a flat f32 tensor) given its gradient times
-    /// `grad_scale` (the clipping factor, 1 without clipping), in place: one pass over
-    /// parameters, moments and gradient.
+    /// Applies one step of learning rate `lr` to `params` (a flat f32 tensor) given its
+    /// gradient times `grad_scale` (the clipping factor, 1 without clipping), in place: one
+    /// pass over parameters, moments and gradient.
     ///
     /// # Panics
     /// If the lengths differ from the state's, or `params` is not a contiguous f32 CPU tensor:
     /// programming errors.
-    pub fn step(&mut self, params: &mut Tensor, grad: &Gradient, grad_scale: f32) {
+    pub fn step(&mut self, params: &mut Tensor, grad: &Gradient, lr: f64, grad_scale: f32) {
         let n = self.exp_avg.len();
         assert!(params.numel() == n && grad.numel() == n, "Adam state is for {n} parameters");
         // SAFETY: `params` is borrowed mutably for this call and no other handle to its
@@ -64,7 +65,7 @@ impl FlatAdam {
         #[allow(unsafe_code)]
         let params = unsafe { tensor_memory::f32s_mut(params) };
         self.step += 1;
-        let AdamConfig { lr, beta1, beta2, eps } = self.config;
+        let AdamConfig { beta1, beta2, eps } = self.config;
         // Past i32::MAX the bias corrections are 1 to the last bit; a wrapped exponent would
         // make them 0 and every step infinite.
         let t = i32::try_from(self.step).unwrap_or(i32::MAX);

@@ -36,6 +36,9 @@ pub struct UpdateStats {
     /// |TD error| per sample, for priority updates.
     pub td_errors: Vec<f32>,
     pub grad_norm: f64,
+    /// The learning rate of this update (`DqnConfig::learning_rate` at its count), applied
+    /// or not.
+    pub learning_rate: f64,
 }
 
 /// Online and target Q-networks with their optimiser.
@@ -57,7 +60,7 @@ impl Dqn {
         let online = QNetwork::new(&network, true);
         let mut target = QNetwork::new(&network, false);
         target.copy_from(&online);
-        let adam = AdamConfig { lr: config.lr, eps: config.adam_eps, ..AdamConfig::default() };
+        let adam = AdamConfig { eps: config.adam_eps, ..AdamConfig::default() };
         let optimizer = FlatAdam::new(online.flat().numel(), adam);
         Self { network, config, online, target, optimizer, updates: 0 }
     }
@@ -124,6 +127,7 @@ impl Dqn {
         let grad = self.online.gradient(&loss);
         let grad_norm = grad.l2_norm();
         let loss_value = loss.double_value(&[]);
+        let learning_rate = self.config.learning_rate(self.updates);
         if !(loss_value.is_finite() && grad_norm.is_finite() && grad_norm < MAX_APPLIED_GRAD_NORM) {
             // One bad batch must not poison the weights: skip the step, report it.
             return UpdateStats {
@@ -132,6 +136,7 @@ impl Dqn {
                 mean_q: f64::NAN,
                 td_errors: Vec::new(),
                 grad_norm,
+                learning_rate,
             };
         }
         // Clipping as torch.nn.utils.clip_grad_norm_ does it, folded into Adam's pass.
@@ -139,8 +144,7 @@ impl Dqn {
             Some(max) if grad_norm > max => (max / (grad_norm + 1e-6)) as f32,
             _ => 1.0,
         };
-        self.optimizer.config.lr = self.config.learning_rate(self.updates);
-        self.optimizer.step(self.online.flat_mut(), &grad, grad_scale);
+        self.optimizer.step(self.online.flat_mut(), &grad, learning_rate, grad_scale);
         self.updates += 1;
         match self.config.target_update {
             TargetUpdate::Hard { every } => {
@@ -151,7 +155,7 @@ impl Dqn {
             TargetUpdate::Polyak { tau } => self.target.polyak_from(&self.online, tau),
         }
         let (mean_q, td_errors) = td_summary(&tensor_memory::plain_f32(&q), &tensor_memory::plain_f32(&targets));
-        UpdateStats { applied: true, loss: loss_value, mean_q, td_errors, grad_norm }
+        UpdateStats { applied: true, loss: loss_value, mean_q, td_errors, grad_norm, learning_rate }
     }
 
     /// Q-values of the online network for `batch × obs_dim` observations.

@@ -11,6 +11,7 @@
 //! (no bootstrap), at truncation (bootstrap from the final observation) and at the newest
 //! observation of a stream (a shorter bootstrap).
 
+use crawler_proto::validate;
 use std::collections::HashMap;
 
 pub use crawler_run::config::{PrioritizedConfig, ReplayConfig};
@@ -49,18 +50,6 @@ impl From<&crawler_proto::TransitionLimits> for SnapshotBounds {
             max_abs_reward: limits.max_abs_reward,
             num_actions: limits.num_actions,
         }
-    }
-}
-
-impl SnapshotBounds {
-    /// The first value outside its range (or not finite), with its index.
-    fn first_outside(&self, observation: &[f32]) -> Option<(usize, f32)> {
-        observation
-            .iter()
-            .zip(&self.observation_range)
-            .enumerate()
-            .find(|(_, (value, [low, high]))| !(*low..=*high).contains(*value))
-            .map(|(index, (value, _))| (index, *value))
     }
 }
 
@@ -293,8 +282,9 @@ impl Replay {
                 }
                 continue;
             }
-            if let Some((index, value)) = bounds.first_outside(self.observation(slot)) {
-                return Err(format!("slot {slot}: observation value {index} is {value}, outside its range"));
+            let observation = self.observation(slot);
+            if let Err(outside) = validate::within_ranges("observation", observation, &bounds.observation_range) {
+                return Err(format!("slot {slot}: {outside}"));
             }
             if flags & HAS_TRANSITION != 0 {
                 transitions += 1;

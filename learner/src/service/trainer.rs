@@ -237,7 +237,7 @@ impl<'a> Trainer<'a> {
             return;
         }
         self.progress.updates += 1;
-        self.telemetry.record_update(stats.loss, stats.mean_q, self.dqn.optimizer.config.lr);
+        self.telemetry.record_update(stats.loss, stats.mean_q, stats.learning_rate);
         if self.progress.updates.is_multiple_of(self.config.learner.weights_every) {
             self.publish();
         }

@@ -397,7 +397,10 @@ fn a_replay_snapshot_is_checked_record_by_record() {
     match load_replay(&loaded, &config) {
         Err(CheckpointError::ReplayContent { path, reason }) => {
             assert!(path.ends_with("replay.bin"), "{}", path.display());
-            assert!(reason.contains("slot 3") && reason.contains("observation value 7"), "{reason}");
+            assert!(
+                reason.contains("slot 3") && reason.contains("`observation` holds") && reason.contains("at index 7"),
+                "{reason}"
+            );
         }
         other => panic!("expected the snapshot refused, got {other:?}"),
     }

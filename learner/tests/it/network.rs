@@ -67,15 +67,15 @@ fn flat_adam_matches_libtorch_adam() {
         let _ = vs.root().var_copy(&format!("p{i}"), &p);
     }
     let reference_params = vs.trainable_variables();
-    let config = AdamConfig { lr: 1e-3, ..AdamConfig::default() };
-    let mut adam = FlatAdam::new(ours.flat().numel(), config);
-    let mut torch_adam = nn::Adam::default().build(&vs, config.lr).unwrap();
+    let lr = 1e-3;
+    let mut adam = FlatAdam::new(ours.flat().numel(), AdamConfig::default());
+    let mut torch_adam = nn::Adam::default().build(&vs, lr).unwrap();
     for step in 0..25 {
         let inputs = Tensor::randn([32, 40], (Kind::Float, tch::Device::Cpu));
         let targets = Tensor::randn([32, 25], (Kind::Float, tch::Device::Cpu));
         let loss = ours.forward(&inputs).mse_loss(&targets, tch::Reduction::Mean);
         let grad = ours.gradient(&loss);
-        adam.step(ours.flat_mut(), &grad, 1.0);
+        adam.step(ours.flat_mut(), &grad, lr, 1.0);
         let reference_loss = forward_with(&spec, &reference_params, &inputs).mse_loss(&targets, tch::Reduction::Mean);
         torch_adam.backward_step(&reference_loss);
         let reference_flat =
@@ -194,9 +194,9 @@ fn a_learning_rate_decay_shrinks_the_optimiser_steps() {
         let mut dqn = Dqn::new(small(), config);
         dqn.update(&batches[0]);
         let before: Tensor = dqn.online.flat().copy();
-        dqn.update(&batches[1]);
+        let stats = dqn.update(&batches[1]);
         let moved = (dqn.online.flat().detach() - before).abs().max().double_value(&[]);
-        (moved, dqn.optimizer.config.lr)
+        (moved, stats.learning_rate)
     };
     let (constant, constant_lr) = second_step(None);
     let (decayed, decayed_lr) = second_step(Some(LrDecay { final_lr: 1e-5, updates: 1 }));
