@@ -13,7 +13,7 @@ use crawler_learner::checkpoint::{self, Progress};
 use crawler_run::config::TrainConfig;
 use crawler_run::metrics;
 use crawler_run::{average, best};
-use crawler_tests::{Learner, binary, free_port, repo_root};
+use crawler_tests::{Learner, binary, free_port, repo_root, u64_at};
 
 fn run(binary_name: &str, args: &[&str]) -> Output {
     let output = Command::new(binary(binary_name)).current_dir(repo_root()).args(args).output().unwrap();
@@ -40,8 +40,8 @@ fn a_run_writes_metrics_that_plot_and_render_turn_into_pictures() {
     let runs = tempfile::tempdir().unwrap();
     let mut learner = Learner::builder(runs.path(), "pictures").actors(2).start();
     learner.wait_for(Duration::from_secs(180), "episodes of both actors and some updates", |s| {
-        (0..2).all(|id| crawler_tests::u64_at(s, &format!("/actors/{id}/episodes")) >= 2)
-            && crawler_tests::u64_at(s, "/updates") > 0
+        (0..2).all(|id| u64_at(s, &format!("/actors/{id}/episodes")) >= 2)
+            && u64_at(s, "/updates") > 0
     });
     let exit = learner.terminate(Duration::from_secs(60));
     assert!(exit.success(), "{exit}");
@@ -149,6 +149,14 @@ fn the_best_checkpoint_by_greedy_evaluation_is_kept_and_eval_reproduces_it() {
     learner.wait_for(Duration::from_secs(180), "a best checkpoint and two periodic ones", |_| {
         record.is_file() && checkpoint::list(&checkpoints).map_or(0, |kept| kept.len()) >= 2
     });
+    // The final checkpoint is named after its update count: stopped before an update past the
+    // newest periodic one, it would replace that one instead of adding a third.
+    let newest_periodic = checkpoint::latest(&checkpoints).unwrap();
+    let newest_updates: u64 =
+        newest_periodic.file_name().unwrap().to_string_lossy().trim_start_matches("step-").parse().unwrap();
+    learner.wait_for(Duration::from_secs(60), "an update past the newest periodic checkpoint", |s| {
+        u64_at(s, "/updates") > newest_updates
+    });
     let exit = learner.terminate(Duration::from_secs(60));
     assert!(exit.success(), "{exit}");
 
@@ -238,7 +246,7 @@ fn a_run_with_an_observation_history_trains_and_evaluates_on_stacked_inputs() {
     let mut learner =
         Learner::builder(runs.path(), "history").actors(1).args(&["--set", "env.observation_history=2"]).start();
     let status = learner.wait_for(Duration::from_secs(180), "an episode and some updates", |s| {
-        crawler_tests::u64_at(s, "/actors/0/episodes") >= 1 && crawler_tests::u64_at(s, "/updates") > 0
+        u64_at(s, "/actors/0/episodes") >= 1 && u64_at(s, "/updates") > 0
     });
     let rejected =
         status["rejected"].as_object().map(|reasons| reasons.values().filter_map(|n| n.as_u64()).sum::<u64>());
@@ -467,7 +475,7 @@ fn mujoco_check_with(args: &[&str], stdin: &str, envs: &[(&str, &Path)]) -> Stri
 #[test]
 #[ignore = "needs MuJoCo from PyPI; scripts/test runs it where `scripts/mujoco-check setup` succeeds"]
 fn mujoco_cross_check_agrees_on_layout_and_policy_and_runs_an_episode() {
-    use crawler_actor::env::{Crawler, EnvConfig, OBS_DIM};
+    use crawler_env::{Crawler, EnvConfig, OBS_DIM};
 
     // Layout: arm raised (no contact but the base's), torques inside the limits' reach.
     let (q1, q2, torques, steps) = (-0.7f32, 0.6f32, [0.2f32, 0.2f32], 5);
