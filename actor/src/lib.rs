@@ -1,8 +1,7 @@
-//! The actor side of crawler: the rapier3d crawler environment ([`env`]), acting with a
-//! Q-network in plain Rust ([`policy`]), and the zenoh client that feeds the learner
-//! ([`node`]). Nothing here links libtorch.
+//! The actor process's library: the zenoh client that joins a learner's run, acts in
+//! [`crawler_env`]'s crawlers with the weights the learner broadcasts, and publishes
+//! transitions within its insert credit ([`node`]). The env, the policy and the settings are
+//! `crawler-env`'s; the binary (`src/bin/actor.rs`) parses flags and runs [`node::run`].
+//! Nothing here links libtorch.
 
-pub mod env;
 pub mod node;
-pub mod policy;
-pub mod settings;

@@ -20,9 +20,9 @@ use tokio::sync::{mpsc, watch};
 use tracing::{debug, info, warn};
 use zenoh::qos::CongestionControl;
 
-use crate::env::{EpisodeSummary, VecEnv};
-use crate::policy::{MlpPolicy, NetworkSpec, PolicyError};
-use crate::settings::ActorSettings;
+use crawler_env::policy::{MlpPolicy, NetworkSpec, PolicyError};
+use crawler_env::settings::ActorSettings;
+use crawler_env::{EpisodeSummary, VecEnv};
 
 /// How to run an actor.
 #[derive(Debug, Clone)]
@@ -75,7 +75,7 @@ fn zenoh_error(context: impl Into<String>) -> impl FnOnce(zenoh::Error) -> NodeE
 /// A client config that waits for the learner forever and retries quickly.
 pub fn client_config(connect: &[String], overrides: &[(String, String)]) -> Result<zenoh::Config, NodeError> {
     let mut config = zenoh::Config::default();
-    let endpoints = serde_json_list(connect);
+    let endpoints = crawler_cli::zenoh_string_list(connect);
     let settings = [
         ("mode", "\"client\"".to_string()),
         ("connect/endpoints", endpoints),
@@ -90,12 +90,6 @@ pub fn client_config(connect: &[String], overrides: &[(String, String)]) -> Resu
         config.insert_json5(&key, &value).map_err(zenoh_error(format!("setting {key} = {value}")))?;
     }
     Ok(config)
-}
-
-/// A JSON list of strings.
-pub fn serde_json_list(items: &[String]) -> String {
-    let quoted: Vec<String> = items.iter().map(|s| format!("{s:?}")).collect();
-    format!("[{}]", quoted.join(","))
 }
 
 /// Weights the simulation can act with.

@@ -11,9 +11,9 @@ mod support;
 
 use std::time::{Duration, Instant};
 
-use crawler_actor::env::gait::SquareWaveGait;
-use crawler_actor::env::{Crawler, EnvConfig, OBS_DIM};
-use crawler_actor::policy::{MlpPolicy, NetworkSpec};
+use crawler_env::gait::SquareWaveGait;
+use crawler_env::policy::{MlpPolicy, NetworkSpec};
+use crawler_env::{Crawler, EnvConfig, OBS_DIM};
 use crawler_learner::algo::dqn::{Batch, Dqn, DqnConfig, LossKind};
 use crawler_learner::checkpoint::encode_weights;
 use serde_json::json;

@@ -6,7 +6,7 @@ mod support;
 
 use std::time::{Duration, Instant};
 
-use crawler_actor::policy::{MlpPolicy, NetworkSpec};
+use crawler_env::policy::{MlpPolicy, NetworkSpec};
 use crawler_learner::algo::adam::{AdamConfig, FlatAdam};
 use crawler_learner::algo::dqn::{Batch, Dqn, DqnConfig};
 use crawler_learner::algo::network::Gradient;

@@ -58,12 +58,12 @@ impl Certified {
         } else if let Some(text) = cn.strip_prefix(EVALUATOR_PREFIX) {
             (text, CERTIFIED_EVALUATOR_IDS, Self::Evaluator)
         } else {
-            return Err(IdentityError::UnknownRole { cn: crate::validate::quoted_prefix(cn) });
+            return Err(IdentityError::UnknownRole { cn: crate::error::quoted_prefix(cn) });
         };
         match text.parse::<u32>() {
             Ok(id) if id.to_string() == text && range.contains(&id) => Ok(make(id)),
             _ => Err(IdentityError::BadId {
-                cn: crate::validate::quoted_prefix(cn),
+                cn: crate::error::quoted_prefix(cn),
                 first: range.start,
                 last: range.end - 1,
             }),

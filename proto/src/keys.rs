@@ -13,7 +13,7 @@
 //! | `crawler/<run>/alive/evaluator/<id>` | liveliness token of evaluator `<id>` |      |
 //! | `crawler/<run>/alive/learner`     | liveliness token of the learner  |          |
 
-use crate::ProtoError;
+use crate::error::ProtoError;
 
 pub const ROOT: &str = "crawler";
 
@@ -25,7 +25,7 @@ pub fn check_run_id(run: &str) -> Result<(), ProtoError> {
     let ok = !run.is_empty()
         && run.len() <= MAX_RUN_ID_BYTES
         && run.chars().all(|c| c.is_ascii_alphanumeric() || c == '-' || c == '_');
-    if ok { Ok(()) } else { Err(ProtoError::BadRunId(crate::validate::quoted_prefix(run))) }
+    if ok { Ok(()) } else { Err(ProtoError::BadRunId(crate::error::quoted_prefix(run))) }
 }
 
 pub fn transitions(run: &str, actor: u32) -> String {
@@ -113,7 +113,7 @@ pub fn trailing_id(key: &str) -> Result<u32, ProtoError> {
     let text = key.rsplit('/').next().unwrap_or(key);
     match text.parse::<u32>() {
         Ok(id) if id.to_string() == text => Ok(id),
-        _ => Err(ProtoError::NonCanonicalId { key: crate::validate::quoted_prefix(key) }),
+        _ => Err(ProtoError::NonCanonicalId { key: crate::error::quoted_prefix(key) }),
     }
 }
 

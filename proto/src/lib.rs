@@ -9,14 +9,16 @@
 //! Architecture invariant: only types from this crate cross the wire, and every message a
 //! node receives goes through [`validate`] before anything else looks at it.
 
+mod error;
 pub mod identity;
 pub mod keys;
 pub mod messages;
 mod transition_codec;
 pub mod validate;
 
+pub use error::ProtoError;
 pub use messages::*;
-pub use validate::{ProtoError, SequenceTracker, TransitionLimits};
+pub use validate::{SequenceTracker, TransitionLimits};
 
 /// Version of the wire protocol. Bumped with any incompatible change to a message or key.
 /// 2: run settings as a proto message (was JSON); weights ordered by learner session.

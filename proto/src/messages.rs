@@ -229,7 +229,7 @@ pub struct EnvSettings {
     pub shoulder_pair: i32,
 }
 
-/// Ranges drawn once per episode (`crawler_actor::env::Randomization` documents each); every
+/// Ranges drawn once per episode (`crawler_env::Randomization` documents each); every
 /// `[low, high]` pair is two values.
 #[derive(Clone, PartialEq, prost::Message)]
 pub struct RandomizationSettings {
@@ -260,7 +260,7 @@ pub enum Direction {
     Backward = 1,
 }
 
-/// How the base–link 1 contact pair acts on the shoulder (`crawler_actor::env::ShoulderPair`).
+/// How the base–link 1 contact pair acts on the shoulder (`crawler_env::ShoulderPair`).
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, PartialOrd, Ord, prost::Enumeration)]
 #[repr(i32)]
 pub enum ShoulderPair {

@@ -7,7 +7,7 @@ venv and hands this script the command of the project's side
 workloads here mirror that file row by row. Everything runs on one thread.
 
   physics              10 x 20 s of the square-wave gait that crawls in both engines
-                       (actor/src/env/gait.rs, FORWARD) from joint angles (0, 0): this
+                       (actor/env/src/gait.rs, FORWARD) from joint angles (0, 0): this
                        project's rapier3d env against MuJoCo's C rollout (mujoco.rollout) of
                        the study's model. Speed and flips in both are printed too: a faster
                        engine that is wrong does not count.
@@ -45,7 +45,7 @@ from check import Crawler, square_wave  # noqa: E402  (the cross-check's model a
 BUDGET_S = 3.0
 OBS_DIM = 40
 NUM_ACTIONS = 25
-# actor/src/env/gait.rs: SquareWaveGait::FORWARD.
+# actor/env/src/gait.rs: SquareWaveGait::FORWARD.
 FORWARD_GAIT = {"period": 0.3, "high": [-1.0, 0.5], "low": [0.0, -0.5], "phase_lag": 0.0}
 PHYSICS_EPISODES, PHYSICS_STEPS = 10, 10_000
 # learner/benches/anchors.rs: NetworkSpec::study() and the default preset's network.

@@ -4,7 +4,7 @@ Run through scripts/mujoco-check, which installs the pinned MuJoCo into a cached
 
   eval CHECKPOINTS   greedy episodes of a checkpoint in MuJoCo, on the study's model
                      (crawling_robot.xml, a copy of the study's MJCF), with the observation
-                     built as actor/src/env/observation.rs documents it and the checkpoint's
+                     built as actor/env/src/observation.rs documents it and the checkpoint's
                      own action levels, torque limit, action repeat and direction. Prints one
                      JSON object: per-episode speed, flips, joint-limit overshoot, and the
                      summary (mean, min, stuck episodes).
@@ -18,13 +18,13 @@ Run through scripts/mujoco-check, which installs the pinned MuJoCo into a cached
                      check against the Rust env (tests/tests/outputs.rs).
   act CHECKPOINTS    greedy actions of a checkpoint's network for observations given as
                      JSON lists, one per line on stdin: the numpy MLP against the Rust one.
-  gaits              the gait bank (actor/examples/gait_bank.rs prints it, with each gait's
+  gaits              the gait bank (actor/env/examples/gait_bank.rs prints it, with each gait's
                      start poses, mean speed and flips in this project's env, as JSON lines
                      on stdin) run in MuJoCo: each gait's speed and flips in both engines,
                      their rank correlation and mean absolute difference.
   replay             sim-to-sim state replay: a square-wave gait is run in MuJoCo, and from
                      every --every'th state of that trajectory this project's env
-                     (actor/examples/state_replay.rs) is set to the same qpos/qvel and plays
+                     (actor/env/examples/state_replay.rs) is set to the same qpos/qvel and plays
                      the same torques for --horizon steps. Prints, per horizon, how far the
                      two engines drift apart (base tilt, joint angles, rates), the normal
                      and landing impulse on the base over 1, 5 and --horizon steps in both,
@@ -70,7 +70,7 @@ def rot_y(angle: float) -> np.ndarray:
 
 def start_lift(q1: float, q2: float) -> float:
     """How far to lift a crawler posed with its base at rest so no part is below the floor
-    (actor/src/env/crawler.rs, start_lift)."""
+    (actor/env/src/crawler/world.rs, start_lift)."""
     r1, r2 = rot_y(q1), rot_y(q1 + q2)
     link1_origin = np.array([BASE_HALF, 0.0, 0.0])
     link2_origin = link1_origin + r1 @ np.array([LINK1_LENGTH, 0.0, 0.0])
@@ -162,7 +162,7 @@ class Crawler:
         return direction * (float(self.data.qpos[0]) - self.start_x)
 
     def observe(self, previous_torques) -> np.ndarray:
-        """The 40 values of actor/src/env/observation.rs, from the current state. Touch forces
+        """The 40 values of actor/env/src/observation.rs, from the current state. Touch forces
         are those of the last step's contact solve (MuJoCo computes sensors before it
         integrates), as in the Rust env; link angular velocities are composed from the
         current base angular velocity and joint rates (world frame)."""
@@ -179,7 +179,7 @@ class Crawler:
 
 
 class Mlp:
-    """The checkpoint's Q-network (actor/src/policy/spec.rs): Linear, LayerNorm?, ReLU per
+    """The checkpoint's Q-network (actor/env/src/policy/spec.rs): Linear, LayerNorm?, ReLU per
     hidden layer, then a Linear, with nn.Sequential names."""
 
     def __init__(self, weights: dict, network: dict) -> None:
@@ -206,7 +206,7 @@ class Mlp:
 
 
 class PolicyInput:
-    """The policy's input of actor/src/env/observation.rs (`stack_first`, `stack_next`): the
+    """The policy's input of actor/env/src/observation.rs (`stack_first`, `stack_next`): the
     last `history` 40-value observations of the decisions so far, newest first, the first one
     repeated where the episode is younger than the history."""
 
@@ -404,7 +404,7 @@ def ranks(values: np.ndarray) -> np.ndarray:
 def gaits(args) -> None:
     bank = [json.loads(line) for line in sys.stdin if line.strip()]
     if not bank:
-        sys.exit("error: no gaits on stdin; pipe in `cargo run --release -p crawler-actor --example gait_bank`")
+        sys.exit("error: no gaits on stdin; pipe in `cargo run --release -p crawler-env --example gait_bank`")
     crawler = Crawler()
     rows = []
     for entry in bank:

@@ -9,7 +9,7 @@ use std::path::{Path, PathBuf};
 use std::process::{Child, Command, ExitStatus, Stdio};
 use std::time::{Duration, Instant};
 
-use crawler_actor::env::OBS_DIM;
+use crawler_env::OBS_DIM;
 
 /// A workspace binary of the same profile as the running test or bench, or from
 /// `CRAWLER_BIN_DIR` when set (long experiments run from a copy, so rebuilding the workspace

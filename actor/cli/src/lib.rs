@@ -54,6 +54,13 @@ fn is_tls_endpoint(endpoint: &str) -> bool {
     endpoint.starts_with("tls/")
 }
 
+/// A list of strings as a zenoh JSON5 setting takes it (`connect/endpoints`,
+/// `listen/endpoints`): each quoted and escaped.
+pub fn zenoh_string_list(items: &[String]) -> String {
+    let quoted: Vec<String> = items.iter().map(|s| format!("{s:?}")).collect();
+    format!("[{}]", quoted.join(","))
+}
+
 /// Splits `--zenoh KEY=JSON5` arguments into pairs; the error names the bad argument.
 pub fn zenoh_overrides(pairs: &[String]) -> Result<Vec<(String, String)>, ZenohOverrideError> {
     pairs

@@ -1,5 +1,5 @@
 //! Physics throughput on one core along a moving gait, for 1 crawler and for K = 16.
-//! `cargo bench -p crawler-actor --bench physics`
+//! `cargo bench -p crawler-env --bench physics`
 //!
 //! Target (issue 2): at least 60 000 physics steps/s per core. Prints the ratio to it, and
 //! what the default soft-constraint shoulder pair (`env.shoulder_pair`, a second joint with a
@@ -8,8 +8,8 @@
 
 use std::time::Instant;
 
-use crawler_actor::env::gait::SquareWaveGait;
-use crawler_actor::env::{EnvConfig, ShoulderPair, VecEnv};
+use crawler_env::gait::SquareWaveGait;
+use crawler_env::{EnvConfig, ShoulderPair, VecEnv};
 
 const TARGET_STEPS_PER_SECOND: f64 = 60_000.0;
 

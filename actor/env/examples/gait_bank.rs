@@ -6,16 +6,16 @@
 //! Several starts, because a gait that tumbles is chaotic: its speed from one start says
 //! little.
 //!
-//! `cargo run --release -p crawler-actor --example gait_bank [-- KEY=VALUE …]`: each argument
+//! `cargo run --release -p crawler-env --example gait_bank [-- KEY=VALUE …]`: each argument
 //! overrides one env setting (TOML values, e.g. `solver_iterations=50`), to measure a
 //! candidate physics change on the whole bank. `--sort` prints the fastest first instead.
 #![allow(clippy::print_stdout)]
 
 use anyhow::Context;
-use crawler_actor::env::gait::SquareWaveGait;
-use crawler_actor::env::model::{JOINT1_RANGE, JOINT2_RANGE};
-use crawler_actor::env::observation::BASE_ANGVEL;
-use crawler_actor::env::{Crawler, EnvConfig, OBS_DIM};
+use crawler_env::gait::SquareWaveGait;
+use crawler_env::model::{JOINT1_RANGE, JOINT2_RANGE};
+use crawler_env::observation::BASE_ANGVEL;
+use crawler_env::{Crawler, EnvConfig, OBS_DIM};
 
 const SECONDS: f32 = 20.0;
 /// Joint angles of the start poses, in degrees: the middle and two corners of the study's

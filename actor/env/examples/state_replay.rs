@@ -8,14 +8,14 @@
 //! the torques one physics step each and prints one JSON line, `{"states": [{"qpos", "qvel"},
 //! …]}`, the state after every step. `scripts/mujoco-check replay` drives it.
 //!
-//! `cargo run --release -p crawler-actor --example state_replay [-- KEY=VALUE …]`: each argument
+//! `cargo run --release -p crawler-env --example state_replay [-- KEY=VALUE …]`: each argument
 //! overrides one env setting (TOML values), as for the gait bank.
 #![allow(clippy::print_stdout)]
 
 use std::io::BufRead;
 
 use anyhow::Context;
-use crawler_actor::env::{Crawler, EnvConfig, GeneralizedState};
+use crawler_env::{Crawler, EnvConfig, GeneralizedState};
 
 #[derive(serde::Deserialize)]
 #[serde(deny_unknown_fields)]

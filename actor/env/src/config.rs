@@ -2,6 +2,7 @@
 
 use serde::{Deserialize, Serialize};
 
+use super::error::EnvConfigError;
 use super::observation::{MAX_OBSERVATION_HISTORY, OBS_DIM};
 use super::randomization::Randomization;
 
@@ -11,13 +12,13 @@ use super::randomization::Randomization;
 pub const MAX_POSITION_REWARD_WEIGHT: f32 = 10.0;
 
 /// Largest `env.base_impact_penalty`, per N·s of base impulse over the threshold. The charge
-/// a physics step can take is capped on its own (`MAX_BASE_IMPACT_CHARGE`, `crawler.rs`), so
+/// a physics step can take is capped on its own (`MAX_BASE_IMPACT_CHARGE`, `crawler/reward.rs`), so
 /// this bound is not what keeps returns inside the protocol's limits; it only refuses weights
 /// far beyond any measured (EXPERIMENTS.md: 5–17).
 pub const MAX_BASE_IMPACT_PENALTY: f32 = 50.0;
 
 /// Largest `env.joint_limit_penalty`, per rad·s past the limits. As with the landing penalty
-/// a physics step's charge is capped on its own (`MAX_JOINT_LIMIT_CHARGE`, `crawler.rs`); this
+/// a physics step's charge is capped on its own (`MAX_JOINT_LIMIT_CHARGE`, `crawler/reward.rs`); this
 /// only refuses weights that would charge any touch of a limit the whole cap.
 pub const MAX_JOINT_LIMIT_PENALTY: f32 = 10_000.0;
 
@@ -181,15 +182,6 @@ impl Default for EnvConfig {
             randomization: Randomization::default(),
         }
     }
-}
-
-/// A setting outside its allowed range. The message names the key and the range.
-#[derive(Debug, Clone, PartialEq, thiserror::Error)]
-#[error("env.{key} = {value} is invalid: {allowed}")]
-pub struct EnvConfigError {
-    pub key: &'static str,
-    pub value: String,
-    pub allowed: &'static str,
 }
 
 impl EnvConfig {

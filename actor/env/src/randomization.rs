@@ -12,7 +12,7 @@ use rand::distr::uniform::SampleUniform;
 use rand_chacha::ChaCha8Rng;
 use serde::{Deserialize, Serialize};
 
-use super::config::EnvConfigError;
+use super::error::EnvConfigError;
 
 /// Ranges, each `[low, high]`, drawn once per episode.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]

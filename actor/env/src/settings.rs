@@ -5,8 +5,8 @@
 use crawler_proto as proto;
 use serde::{Deserialize, Serialize};
 
-use crate::env::{Direction, EnvConfig, Randomization, ShoulderPair};
 use crate::policy::{EpsilonDecay, apex_epsilon};
+use crate::{Direction, EnvConfig, Randomization, ShoulderPair};
 
 /// Why run settings received from a learner are unusable.
 #[derive(Debug, Clone, PartialEq, thiserror::Error)]
@@ -16,7 +16,7 @@ pub enum SettingsError {
     #[error("field `{field}` = {value} does not fit: {allowed}")]
     Field { field: &'static str, value: String, allowed: &'static str },
     #[error(transparent)]
-    Env(#[from] crate::env::EnvConfigError),
+    Env(#[from] crate::EnvConfigError),
     #[error("exploration {exploration:?} is invalid: {allowed}")]
     Exploration { exploration: Exploration, allowed: &'static str },
     #[error(

@@ -2,10 +2,10 @@
 
 #![allow(clippy::unwrap_used)] // Tests: a panic is a failure with a message.
 
-use crawler_actor::env::gait::SquareWaveGait;
-use crawler_actor::env::model::{DEG, JOINT1_RANGE, JOINT2_RANGE};
-use crawler_actor::env::observation as obs;
-use crawler_actor::env::{Crawler, Direction, EnvConfig, OBS_DIM, Reward, ShoulderPair, VecEnv};
+use crawler_env::gait::SquareWaveGait;
+use crawler_env::model::{DEG, JOINT1_RANGE, JOINT2_RANGE};
+use crawler_env::observation as obs;
+use crawler_env::{Crawler, Direction, EnvConfig, OBS_DIM, Reward, ShoulderPair, VecEnv};
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 
@@ -619,7 +619,7 @@ fn an_observation_history_holds_the_last_decisions_newest_first_and_restarts_eac
 
 #[test]
 fn randomised_physics_is_drawn_per_episode_reproducibly_and_acts_on_the_robot() {
-    use crawler_actor::env::Randomization;
+    use crawler_env::Randomization;
     let randomized = EnvConfig { randomization: Randomization::EVAL_PERTURBATIONS, ..endless() };
     // Reproducible per seed, different across seeds and across episodes.
     let a = Crawler::new(randomized.clone(), 5);
@@ -726,7 +726,7 @@ fn a_generalized_state_reads_back_as_written_and_replays_a_trajectory() {
 
 #[test]
 fn a_stiffer_floor_stops_a_drop_more_sharply_and_zero_keeps_rapiers_floor() {
-    use crawler_actor::env::{EpisodePhysics, Randomization};
+    use crawler_env::{EpisodePhysics, Randomization};
     // The crawler settles on rapier's own floor and is lifted 5 cm, held still; that one pose
     // is dropped onto each floor with the motors off (the same drop: on each floor the arm
     // would settle into a pose of its own). Returns the peak normal force on the base, the
@@ -767,7 +767,7 @@ fn a_stiffer_floor_stops_a_drop_more_sharply_and_zero_keeps_rapiers_floor() {
 
 #[test]
 fn roll_pushes_tip_the_crawler_sideways_and_only_when_asked() {
-    use crawler_actor::env::Randomization;
+    use crawler_env::Randomization;
     // The largest roll (degrees) of a crawler holding still for 2 s, and its final tilt.
     let roll_of = |randomization: Randomization, seed: u64| {
         let mut crawler = Crawler::new(EnvConfig { randomization, ..endless() }, seed);

@@ -105,7 +105,7 @@ fn check_same_run(each: &Checkpoint, newest: &Checkpoint) -> Result<(), AverageE
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crawler_actor::policy::NetworkSpec;
+    use crawler_env::policy::NetworkSpec;
 
     fn spec() -> NetworkSpec {
         NetworkSpec { obs_dim: 40, hidden: vec![4], num_actions: 9, layer_norm: false }

@@ -19,7 +19,7 @@ use std::path::{Path, PathBuf};
 use serde::{Deserialize, Serialize};
 use tracing::{info, warn};
 
-use crawler_actor::env::Randomization;
+use crawler_env::Randomization;
 
 use crate::evaluate::{
     EVAL_SEED, EvaluateError, LoadedPolicy, STUCK_SPEED, episode_failed, evaluation_env, greedy_episode, load_policy,
@@ -106,6 +106,12 @@ pub struct EvaluationPlan {
 }
 
 impl EvaluationPlan {
+    /// How the best-checkpoint thread evaluates checkpoints: `learner.best_*` of `config`.
+    pub fn of(config: &crate::config::TrainConfig) -> Self {
+        let l = &config.learner;
+        Self { episodes: l.best_episodes, seconds: l.best_seconds, perturbed: l.best_perturbed }
+    }
+
     /// The perturbations the plan's episodes run under; `None`: the nominal physics.
     pub fn perturbations(&self) -> Option<Randomization> {
         self.perturbed.then_some(Randomization::EVAL_PERTURBATIONS)

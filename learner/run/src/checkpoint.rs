@@ -21,8 +21,8 @@ use std::fs;
 use std::io::{BufWriter, Read, Write};
 use std::path::{Path, PathBuf};
 
-use crawler_actor::env::OBS_LAYOUT_VERSION;
-use crawler_actor::policy::NetworkSpec;
+use crawler_env::OBS_LAYOUT_VERSION;
+use crawler_env::policy::NetworkSpec;
 use safetensors::tensor::TensorView;
 use safetensors::{Dtype, SafeTensors};
 use serde::{Deserialize, Serialize};

@@ -2,9 +2,9 @@
 
 use std::path::Path;
 
-use crawler_actor::env::EnvConfig;
-use crawler_actor::policy::NetworkSpec;
-use crawler_actor::settings::{ActorSettings, Exploration};
+use crawler_env::EnvConfig;
+use crawler_env::policy::NetworkSpec;
+use crawler_env::settings::{ActorSettings, Exploration};
 use serde::{Deserialize, Serialize};
 
 #[derive(Debug, thiserror::Error)]
@@ -18,7 +18,7 @@ pub enum ConfigError {
     #[error("{key} = {value} is invalid: {allowed}")]
     Invalid { key: String, value: String, allowed: String },
     #[error(transparent)]
-    Actor(#[from] crawler_actor::settings::SettingsError),
+    Actor(#[from] crawler_env::settings::SettingsError),
     #[error("{what} would need {needed_mib} MiB, more than this machine's {total_mib} MiB of memory: lower {key}")]
     TooLarge { what: &'static str, key: &'static str, needed_mib: u64, total_mib: u64 },
 }
@@ -561,12 +561,6 @@ impl TrainConfig {
         Ok(())
     }
 
-    /// How the best-checkpoint thread evaluates checkpoints (`learner.best_*`).
-    pub fn best_evaluation(&self) -> crate::best::EvaluationPlan {
-        let l = &self.learner;
-        crate::best::EvaluationPlan { episodes: l.best_episodes, seconds: l.best_seconds, perturbed: l.best_perturbed }
-    }
-
     pub fn network_spec(&self) -> NetworkSpec {
         NetworkSpec {
             obs_dim: self.env.policy_input_dim(),
@@ -644,7 +638,7 @@ mod tests {
         .unwrap();
         assert_eq!(config.dqn.lr, 1e-3);
         assert_eq!(config.dqn.batch_size, 64);
-        assert_eq!(config.env.direction, crawler_actor::env::Direction::Backward);
+        assert_eq!(config.env.direction, crawler_env::Direction::Backward);
 
         let err = TrainConfig::from_toml("", "test", &["dqn.lr=2".into()]).unwrap_err().to_string();
         assert!(err.contains("dqn.lr") && err.contains("(0, 1)"), "{err}");

@@ -5,9 +5,9 @@
 
 use std::path::{Path, PathBuf};
 
-use crawler_actor::env::observation::{stack_first, stack_next};
-use crawler_actor::env::{Crawler, EnvConfig, EpisodeSummary, OBS_DIM, PoseFrame, Randomization};
-use crawler_actor::policy::{MlpPolicy, PolicyError};
+use crawler_env::observation::{stack_first, stack_next};
+use crawler_env::policy::{MlpPolicy, PolicyError};
+use crawler_env::{Crawler, EnvConfig, EpisodeSummary, OBS_DIM, PoseFrame, Randomization};
 
 use crate::checkpoint::{self, CheckpointError, CheckpointMeta};
 use crate::config::{ConfigError, TrainConfig};

@@ -1,6 +1,6 @@
 //! The Double DQN update: TD targets, loss, Adam and target-network upkeep.
 
-use crawler_actor::policy::{NetworkSpec, argmax, q_values_of_params};
+use crawler_env::policy::{NetworkSpec, argmax, q_values_of_params};
 pub use crawler_run::config::{DqnConfig, LossKind, LrDecay, TargetUpdate};
 use tch::{Kind, Reduction, Tensor};
 

@@ -17,7 +17,7 @@
 //! PyTorch's layout: [`QNetwork::to_torch_order`] and [`QNetwork::from_torch_order`] are the
 //! only crossings.
 
-use crawler_actor::policy::{NetworkSpec, ParamInfo, WeightLayout, transpose};
+use crawler_env::policy::{NetworkSpec, ParamInfo, WeightLayout, transpose};
 use tch::{Kind, Tensor};
 
 /// A gradient, one tensor per parameter in slot order: laid end to end they match the flat

@@ -11,7 +11,7 @@ use std::sync::mpsc::{SyncSender, TrySendError};
 use std::sync::{Arc, Mutex, PoisonError};
 use std::time::{Duration, Instant};
 
-use crawler_actor::env::observation;
+use crawler_env::observation;
 use crawler_proto::{self as proto, PROTOCOL_VERSION, SequenceTracker, TransitionLimits, keys};
 use crawler_run::config::TrainConfig;
 use prost::Message;
@@ -511,7 +511,7 @@ pub fn transition_limits(config: &TrainConfig, run_id: &str) -> TransitionLimits
         // One observation's ranges for each slot of the history.
         observation_range: observation::observation_range(config.env.max_torque)
             .repeat(config.env.observation_history as usize),
-        max_abs_reward: crawler_actor::env::Reward::max_abs_total(&config.env),
+        max_abs_reward: crawler_env::Reward::max_abs_total(&config.env),
     }
 }
 

@@ -197,7 +197,7 @@ async fn open_router(
     overrides: Vec<(String, String)>,
 ) -> Result<zenoh::Session, ServiceError> {
     let mut zenoh_config = zenoh::Config::default();
-    let listen = crawler_actor::node::serde_json_list(&config.learner.listen);
+    let listen = crawler_cli::zenoh_string_list(&config.learner.listen);
     let base = [
         ("mode".to_string(), "\"router\"".to_string()),
         ("listen/endpoints".to_string(), listen),

@@ -181,7 +181,7 @@ impl<'a> Trainer<'a> {
             progress,
             session_start: Instant::now(),
             last_checkpoint: None,
-            best: BestFeed::start(&run_dir.join("checkpoints"), config.best_evaluation())
+            best: BestFeed::start(&run_dir.join("checkpoints"), crawler_run::best::EvaluationPlan::of(config))
                 .map_err(ServiceError::BestThread)?,
         })
     }

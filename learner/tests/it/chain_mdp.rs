@@ -2,7 +2,7 @@
 
 #![allow(clippy::unwrap_used)] // Tests: a panic is a failure with a message.
 
-use crawler_actor::policy::NetworkSpec;
+use crawler_env::policy::NetworkSpec;
 use crawler_learner::algo::dqn::{Batch, Dqn, DqnConfig, TargetUpdate};
 use crawler_learner::replay::{Replay, ReplayConfig, SampledBatch, StreamId, Transition};
 use rand::{Rng, SeedableRng};

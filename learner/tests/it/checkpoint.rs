@@ -4,7 +4,7 @@
 
 use std::fs;
 
-use crawler_actor::policy::NetworkSpec;
+use crawler_env::policy::NetworkSpec;
 use crawler_learner::algo::dqn::{Batch, Dqn, DqnConfig};
 use crawler_learner::checkpoint::{self, CheckpointError, Progress, ReplayExpectation};
 use crawler_learner::replay::{Replay, ReplayConfig, SampledBatch, SnapshotBounds, StreamId, Transition};

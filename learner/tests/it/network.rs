@@ -2,7 +2,7 @@
 
 #![allow(clippy::unwrap_used)] // Tests: a panic is a failure with a message.
 
-use crawler_actor::policy::{MlpPolicy, NetworkSpec};
+use crawler_env::policy::{MlpPolicy, NetworkSpec};
 use crawler_learner::algo::adam::{AdamConfig, FlatAdam};
 use crawler_learner::algo::dqn::{Batch, Dqn, DqnConfig, LossKind, TargetUpdate};
 use crawler_learner::algo::network::QNetwork;

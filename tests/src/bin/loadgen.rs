@@ -264,7 +264,7 @@ async fn open_sink(listen: &str, overrides: &[(String, String)]) -> anyhow::Resu
     let mut config = zenoh::Config::default();
     let settings = [
         ("mode", "\"router\"".to_string()),
-        ("listen/endpoints", crawler_actor::node::serde_json_list(&[listen.to_string()])),
+        ("listen/endpoints", crawler_cli::zenoh_string_list(&[listen.to_string()])),
         ("scouting/multicast/enabled", "false".to_string()),
         ("transport/link/rx/max_message_size", proto::TRANSPORT_MAX_MESSAGE_BYTES.to_string()),
         ("transport/unicast/max_sessions", "1000".to_string()),

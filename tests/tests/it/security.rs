@@ -36,6 +36,23 @@ fn start_learner(port: u16, runs: &Path, run: &str, tls: &Path) -> Learner {
     Learner::builder(runs, run).port(port).config(SMOKE).args(&extra).start()
 }
 
+/// A learner on a mutual-TLS loopback endpoint, with `make-tls.sh` material for `actors`
+/// actors in a temporary directory that lives as long as this.
+struct TlsLearner {
+    dir: tempfile::TempDir,
+    tls: PathBuf,
+    port: u16,
+    learner: Learner,
+}
+
+fn tls_learner(run: &str, actors: u32) -> TlsLearner {
+    let dir = tempfile::tempdir().unwrap();
+    let tls = make_tls(&dir.path().join("tls"), "localhost", actors);
+    let port = free_port();
+    let learner = start_learner(port, &dir.path().join("runs"), run, &tls);
+    TlsLearner { dir, tls, port, learner }
+}
+
 fn start_actor(port: u16, id: u32, run: &str, tls: Vec<String>, log_dir: &Path) -> Actor {
     start_actor_at(&format!("tls/localhost:{port}"), &id.to_string(), run, &tls, log_dir)
 }
@@ -118,14 +135,10 @@ fn key_is(line: &serde_json::Value, key: &str) -> bool {
 
 #[test]
 fn only_actors_with_a_certificate_from_the_runs_ca_connect() {
-    let dir = tempfile::tempdir().unwrap();
-    let tls = make_tls(&dir.path().join("tls"), "localhost", 2);
+    let run = "tls-connect";
+    let TlsLearner { dir, tls, port, mut learner } = tls_learner(run, 2);
     // A second CA: its certificates are well-formed but signed by the wrong authority.
     let rogue = make_tls(&dir.path().join("rogue"), "localhost", 2);
-    let runs = dir.path().join("runs");
-    let port = free_port();
-    let run = "tls-connect";
-    let mut learner = start_learner(port, &runs, run, &tls);
 
     let genuine = start_actor(port, 0, run, tls_flags(&tls, &tls, "actor-0"), dir.path());
     // It trusts the learner (right CA) but presents a certificate of another CA.
@@ -155,12 +168,8 @@ fn only_actors_with_a_certificate_from_the_runs_ca_connect() {
 
 #[test]
 fn an_authenticated_actor_cannot_forge_weights_or_put_outside_its_rights() {
-    let dir = tempfile::tempdir().unwrap();
-    let tls = make_tls(&dir.path().join("tls"), "localhost", 2);
-    let runs = dir.path().join("runs");
-    let port = free_port();
     let run = "tls-forge";
-    let mut learner = start_learner(port, &runs, run, &tls);
+    let TlsLearner { dir, tls, port, mut learner } = tls_learner(run, 2);
     let mut genuine = start_actor(port, 0, run, tls_flags(&tls, &tls, "actor-0"), dir.path());
     // Everything an observer may read: all but transitions (a stalled reader of those would
     // block the actors).
@@ -228,12 +237,8 @@ fn an_authenticated_actor_cannot_forge_weights_or_put_outside_its_rights() {
 /// session's own actor-0 traffic gets through (the positive control).
 #[test]
 fn a_certificate_cannot_put_declare_or_reply_as_another_actor() {
-    let dir = tempfile::tempdir().unwrap();
-    let tls = make_tls(&dir.path().join("tls"), "localhost", 2);
-    let runs = dir.path().join("runs");
-    let port = free_port();
     let run = "tls-as-another";
-    let mut learner = start_learner(port, &runs, run, &tls);
+    let TlsLearner { dir, tls, port, mut learner } = tls_learner(run, 2);
     let victim = start_actor(port, 1, run, tls_flags(&tls, &tls, "actor-1"), dir.path());
     learner.wait_for(Duration::from_secs(120), "actor 1 training", |s| {
         u64_at(s, "/actors/1/transitions") > 0 && u64_at(s, "/updates") > 20
@@ -616,12 +621,8 @@ fn attacks_over_plain_tcp_leave_training_intact() {
 
 #[test]
 fn attacks_by_a_certified_actor_leave_training_intact() {
-    let dir = tempfile::tempdir().unwrap();
-    let tls = make_tls(&dir.path().join("tls"), "localhost", LATE_ID + 1);
-    let runs = dir.path().join("runs");
-    let port = free_port();
     let run = "attacked-tls";
-    let mut learner = start_learner(port, &runs, run, &tls);
+    let TlsLearner { dir, tls, port, mut learner } = tls_learner(run, LATE_ID + 1);
     let _genuine: Vec<Actor> = (0..2)
         .map(|id| start_actor(port, id, run, tls_flags(&tls, &tls, &format!("actor-{id}")), dir.path()))
         .collect();

@@ -82,7 +82,7 @@ fn main() -> anyhow::Result<()> {
     let loaded = load_policy(&args.checkpoint, &config_overrides)?;
     let mut env = evaluation_env(&loaded.config.env, args.seconds)?;
     if args.perturbed {
-        env.randomization = crawler_actor::env::Randomization::EVAL_PERTURBATIONS;
+        env.randomization = crawler_env::Randomization::EVAL_PERTURBATIONS;
     }
     if !physics_overrides.is_empty() {
         let mut stated = loaded.config.clone();

@@ -49,8 +49,8 @@ fn main() -> anyhow::Result<()> {
     let stride = frame_stride(env.dt, args.fps);
     let delay = (100.0 / f64::from(args.fps)).round() as u16;
     let direction = match env.direction {
-        crawler_actor::env::Direction::Forward => 1.0,
-        crawler_actor::env::Direction::Backward => -1.0,
+        crawler_env::Direction::Forward => 1.0,
+        crawler_env::Direction::Backward => -1.0,
     };
     let start_x = frames.first().map_or(0.0, |f| f.base[0]);
     let view =

@@ -1,7 +1,7 @@
 //! Side views of the crawler (the x–z plane, x to the right) for the gait animation.
 
-use crawler_actor::env::PoseFrame;
-use crawler_actor::env::model::{BASE_HALF_EXTENT, FLOOR_Z, LINK_RADIUS, LINK1_LENGTH, LINK2_LENGTH, TIP_HALF_EXTENT};
+use crawler_env::PoseFrame;
+use crawler_env::model::{BASE_HALF_EXTENT, FLOOR_Z, LINK_RADIUS, LINK1_LENGTH, LINK2_LENGTH, TIP_HALF_EXTENT};
 
 use super::canvas::{Canvas, Colour, GLYPH, text_width};
 
