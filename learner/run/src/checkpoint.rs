@@ -305,7 +305,8 @@ pub(crate) fn write_named(
     // Only a checkpoint that loads back counts; older ones are pruned only after that, so
     // the newest good checkpoint is never the one removed.
     if let Err(error) = verify_saved(&final_path) {
-        let _ = fs::remove_dir_all(&final_path);
+        // Out of the listing first, as every removal: a reader may have found it already.
+        let _ = remove_atomically(&final_path);
         return Err(CheckpointError::Unreadable { path: final_path, source: Box::new(error) });
     }
     Ok(final_path)

@@ -40,8 +40,7 @@ fn a_run_writes_metrics_that_plot_and_render_turn_into_pictures() {
     let runs = tempfile::tempdir().unwrap();
     let mut learner = Learner::builder(runs.path(), "pictures").actors(2).start();
     learner.wait_for(Duration::from_secs(180), "episodes of both actors and some updates", |s| {
-        (0..2).all(|id| u64_at(s, &format!("/actors/{id}/episodes")) >= 2)
-            && u64_at(s, "/updates") > 0
+        (0..2).all(|id| u64_at(s, &format!("/actors/{id}/episodes")) >= 2) && u64_at(s, "/updates") > 0
     });
     let exit = learner.terminate(Duration::from_secs(60));
     assert!(exit.success(), "{exit}");
