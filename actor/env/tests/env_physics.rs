@@ -225,6 +225,30 @@ fn the_same_seed_gives_a_bit_identical_trajectory() {
     assert_eq!(&env.observations()[OBS_DIM..], &observe(&alone)[..]);
 }
 
+/// A crawler's trajectory depends on its seed and its actions only (ARCHITECTURE.md's
+/// invariant): crawler 42 stepped alone and beside another, with its neighbour's actions
+/// drawn apart, gives the same bits, resets included.
+#[test]
+fn a_crawlers_trajectory_does_not_depend_on_its_neighbours() {
+    let trace = |seeds: &[u64], index: usize| {
+        let mut env = VecEnv::new(&EnvConfig::default(), seeds);
+        let (mut own, mut neighbours) = (ChaCha8Rng::seed_from_u64(5), ChaCha8Rng::seed_from_u64(9));
+        let mut trace = Vec::new();
+        for _ in 0..3_000 {
+            let action = own.random_range(0..25);
+            let actions: Vec<u32> =
+                (0..seeds.len()).map(|i| if i == index { action } else { neighbours.random_range(0..25) }).collect();
+            env.step(&actions);
+            let slot = &env.next_observations()[index * OBS_DIM..(index + 1) * OBS_DIM];
+            trace.extend(slot.iter().map(|v| v.to_bits()));
+            trace.push(env.rewards()[index].to_bits());
+        }
+        trace
+    };
+    assert_eq!(trace(&[42], 0), trace(&[7, 42], 1));
+    assert_eq!(trace(&[42], 0), trace(&[42, 7, 8], 0));
+}
+
 #[test]
 fn the_sign_of_the_position_reward_follows_the_direction() {
     let mut totals = Vec::new();
