@@ -173,8 +173,7 @@ fn bad_input_is_refused_counted_and_kept_out_of_replay_while_training_goes_on() 
     assert_eq!(sent["nan"], 5, "{sent}");
 
     // Every kind is counted under its reason.
-    let expected =
-        ["decode", "version", "run_id", "obs_dim", "non_finite", "action", "batch_size", "oversize", "replayed"];
+    let expected = ["decode", "version", "run_id", "obs_dim", "non_finite", "action", "batch_size", "oversize"];
     let total = |s: &serde_json::Value| -> u64 {
         s["rejected"].as_object().map_or(0, |r| r.values().filter_map(serde_json::Value::as_u64).sum())
     };
@@ -185,7 +184,11 @@ fn bad_input_is_refused_counted_and_kept_out_of_replay_while_training_goes_on() 
     // an empty message: wrong version) or miss their count.
     assert_eq!(u64_at(rejected, "/non_finite"), 10, "{rejected}");
     assert!(u64_at(rejected, "/version") >= 5, "{rejected}");
-    assert_eq!(u64_at(rejected, "/replayed"), 5, "{rejected}");
+    // The 5 played-back batches are refused as replayed, or, when actor 77's insert credit
+    // has run out by then, as over credit first: both keep them out, and which comes first
+    // is a matter of timing.
+    let played_back = u64_at(rejected, "/replayed") + u64_at(rejected, "/over_credit");
+    assert_eq!(played_back, 5, "{rejected}");
     assert_eq!(total(&status), 5 * 13, "every bad message is counted once: {rejected}");
     // Only the one valid batch of actor 77 was accepted.
     assert_eq!(u64_at(&status, "/actors/77/transitions"), 8, "{status:#}");
