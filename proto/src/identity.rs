@@ -60,8 +60,8 @@ impl Certified {
         } else {
             return Err(IdentityError::UnknownRole { cn: crate::error::quoted_prefix(cn) });
         };
-        match text.parse::<u32>() {
-            Ok(id) if id.to_string() == text && range.contains(&id) => Ok(make(id)),
+        match crate::keys::canonical_id(text) {
+            Some(id) if range.contains(&id) => Ok(make(id)),
             _ => Err(IdentityError::BadId {
                 cn: crate::error::quoted_prefix(cn),
                 first: range.start,

@@ -111,10 +111,13 @@ pub fn run_of(key: &str) -> Option<&str> {
 /// and a token declared and dropped under such an alias would take actor 3 off the books.
 pub fn trailing_id(key: &str) -> Result<u32, ProtoError> {
     let text = key.rsplit('/').next().unwrap_or(key);
-    match text.parse::<u32>() {
-        Ok(id) if id.to_string() == text => Ok(id),
-        _ => Err(ProtoError::NonCanonicalId { key: crate::error::quoted_prefix(key) }),
-    }
+    canonical_id(text).ok_or_else(|| ProtoError::NonCanonicalId { key: crate::error::quoted_prefix(key) })
+}
+
+/// `text` as a node id if it is that id's one spelling (decimal, no sign, no leading zero),
+/// as in keys and in certificate names ([`crate::identity`]).
+pub fn canonical_id(text: &str) -> Option<u32> {
+    text.parse::<u32>().ok().filter(|id| id.to_string() == text)
 }
 
 #[cfg(test)]

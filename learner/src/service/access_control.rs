@@ -128,32 +128,15 @@ pub fn policy(run: &str, identity: Identity) -> Value {
         // A subject with no property matches every remote session; ids are told apart only by
         // the learner, which takes each in its one canonical spelling.
         Identity::None => {
-            rules.push(rule(
-                "any-actor-publishes",
-                "ingress",
-                &["put"],
+            let any_node = node_rules(
+                "any-node",
                 &[&keys::all_transitions(run), &stats, &status],
-            ));
-            rules.push(rule(
-                "any-node-liveliness",
-                "ingress",
-                &["liveliness_token"],
                 &[&keys::all_alive_actors(run), &keys::all_alive_evaluators(run)],
-            ));
-            rules.push(rule(
-                "any-actor-subscribes-credit",
-                "ingress",
-                &["declare_subscriber"],
-                &[&keys::all_credits(run)],
-            ));
-            rules.push(rule("any-actor-receives-credit", "egress", &["put"], &[&keys::all_credits(run)]));
-            let mut rule_ids: Vec<&str> = follows_the_learner.to_vec();
-            rule_ids.extend([
-                "any-actor-publishes",
-                "any-node-liveliness",
-                "any-actor-subscribes-credit",
-                "any-actor-receives-credit",
-            ]);
+                Some(&keys::all_credits(run)),
+            );
+            let mut rule_ids: Vec<Value> = follows_the_learner.iter().map(|id| json!(id)).collect();
+            rule_ids.extend(any_node.iter().map(|r| r["id"].clone()));
+            rules.extend(any_node);
             (
                 json!([{ "id": "remote" }]),
                 json!([{ "id": "remote-sessions-are-actors", "subjects": ["remote"], "rules": rule_ids }]),
@@ -175,26 +158,35 @@ pub fn policy(run: &str, identity: Identity) -> Value {
 fn own_keys(run: &str, node: Certified) -> Vec<Value> {
     let name = node.common_name();
     match node {
-        Certified::Actor(id) => {
-            let credit = keys::credit(run, id);
-            vec![
-                rule(
-                    &format!("{name}-publishes"),
-                    "ingress",
-                    &["put"],
-                    &[&keys::transitions(run, id), &keys::stats(run, id), &keys::status(run, id)],
-                ),
-                rule(&format!("{name}-liveliness"), "ingress", &["liveliness_token"], &[&keys::alive_actor(run, id)]),
-                rule(&format!("{name}-subscribes-credit"), "ingress", &["declare_subscriber"], &[&credit]),
-                rule(&format!("{name}-receives-credit"), "egress", &["put"], &[&credit]),
-            ]
-        }
-        Certified::Evaluator(id) => vec![
-            rule(&format!("{name}-publishes"), "ingress", &["put"], &[&keys::stats(run, id), &keys::status(run, id)]),
-            rule(&format!("{name}-liveliness"), "ingress", &["liveliness_token"], &[&keys::alive_evaluator(run, id)]),
-        ],
+        Certified::Actor(id) => node_rules(
+            &name,
+            &[&keys::transitions(run, id), &keys::stats(run, id), &keys::status(run, id)],
+            &[&keys::alive_actor(run, id)],
+            Some(&keys::credit(run, id)),
+        ),
+        Certified::Evaluator(id) => node_rules(
+            &name,
+            &[&keys::stats(run, id), &keys::status(run, id)],
+            &[&keys::alive_evaluator(run, id)],
+            None,
+        ),
         Certified::Observer => Vec::new(),
     }
+}
+
+/// The rules, named `<name>-…`, that let a node put on `publishes`, declare liveliness tokens
+/// on `tokens` and, given `credit`, subscribe to and receive its insert credit there: one
+/// certified id's keys, or (over plain TCP) every id's.
+fn node_rules(name: &str, publishes: &[&str], tokens: &[&str], credit: Option<&str>) -> Vec<Value> {
+    let mut rules = vec![
+        rule(&format!("{name}-publishes"), "ingress", &["put"], publishes),
+        rule(&format!("{name}-liveliness"), "ingress", &["liveliness_token"], tokens),
+    ];
+    if let Some(credit) = credit {
+        rules.push(rule(&format!("{name}-subscribes-credit"), "ingress", &["declare_subscriber"], &[credit]));
+        rules.push(rule(&format!("{name}-receives-credit"), "egress", &["put"], &[credit]));
+    }
+    rules
 }
 
 #[cfg(test)]

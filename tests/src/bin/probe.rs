@@ -491,14 +491,8 @@ async fn attack(
             }
             tokio::time::sleep(Duration::from_secs(1)).await;
             let [own, others] = [0, 1].map(|i| credits[i].load(std::sync::atomic::Ordering::Relaxed));
-            let report = serde_json::json!({
-                "attack": format!("{kind:?}"), "sent": sent, "own_credits": own, "victim_credits": others, "holding": true,
-            });
-            let mut stdout = std::io::stdout().lock();
-            writeln!(stdout, "{report}").context("writing stdout")?;
-            stdout.flush().context("flushing stdout")?;
-            drop(stdout);
-            tokio::time::sleep(hold).await;
+            let credits = serde_json::json!({ "own_credits": own, "victim_credits": others });
+            hold_and_report_with(kind, sent, credits, hold).await?;
             drop((queryables, subscribers));
         }
     }
@@ -524,7 +518,15 @@ async fn query(session: &zenoh::Session, keys: &[String]) -> anyhow::Result<()> 
 /// Reports what an attack that holds something has sent, at once (the test acts while it
 /// holds), then holds it for `hold`.
 async fn hold_and_report(kind: Attack, sent: u64, hold: Duration) -> anyhow::Result<()> {
-    let report = serde_json::json!({ "attack": format!("{kind:?}"), "sent": sent, "holding": true });
+    hold_and_report_with(kind, sent, serde_json::json!({}), hold).await
+}
+
+/// [`hold_and_report`], with the fields of the JSON object `extra` in the report too.
+async fn hold_and_report_with(kind: Attack, sent: u64, extra: serde_json::Value, hold: Duration) -> anyhow::Result<()> {
+    let mut report = serde_json::json!({ "attack": format!("{kind:?}"), "sent": sent, "holding": true });
+    if let (Some(report), serde_json::Value::Object(extra)) = (report.as_object_mut(), extra) {
+        report.extend(extra);
+    }
     let mut stdout = std::io::stdout().lock();
     writeln!(stdout, "{report}").context("writing stdout")?;
     stdout.flush().context("flushing stdout")?;

@@ -150,9 +150,7 @@ fn the_best_checkpoint_by_greedy_evaluation_is_kept_and_eval_reproduces_it() {
     });
     // The final checkpoint is named after its update count: stopped before an update past the
     // newest periodic one, it would replace that one instead of adding a third.
-    let newest_periodic = checkpoint::latest(&checkpoints).unwrap();
-    let newest_updates: u64 =
-        newest_periodic.file_name().unwrap().to_string_lossy().trim_start_matches("step-").parse().unwrap();
+    let newest_updates = checkpoint::load(&checkpoint::latest(&checkpoints).unwrap()).unwrap().meta.progress.updates;
     learner.wait_for(Duration::from_secs(60), "an update past the newest periodic checkpoint", |s| {
         u64_at(s, "/updates") > newest_updates
     });
